@@ -1,0 +1,60 @@
+"""Command line of apo: ``apo <command> ...``.
+
+Argument parsing only; every command calls the library. Each command lives in its own module
+``apo.cli.<name>`` exposing ``register(subparsers)``, which adds a sub-parser whose ``func``
+default runs the command and returns the exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from apo.errors import ApoError
+
+# Command modules, in the order `apo --help` lists them.
+COMMANDS = ("dof", "contacts", "analyze", "demo", "track")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the top-level parser with every available sub-command registered."""
+    parser = argparse.ArgumentParser(
+        prog="apo",
+        description="Assembly Plan from Observation: demonstration -> robot task model.",
+    )
+    from apo import __version__
+
+    parser.add_argument("--version", action="version", version=f"apo {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"apo.cli.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"apo.cli.{name}":
+                continue  # command not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit code (0 ok, 1 failure, 2 bad input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args))
+    except ApoError as exc:
+        print(f"apo {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

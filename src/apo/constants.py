@@ -1,0 +1,40 @@
+"""Tolerances used by the geometry and DOF analysis, gathered in one place.
+
+All lengths are in metres, angles in radians. Contact finding scales length tolerances by the
+model size where noted. See ``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Named tolerances (SI units).
+
+    Attributes
+    ----------
+    rank : float
+        Relative singular-value threshold for ranks of unit-column matrices (DOF analysis).
+    cone : float
+        Feasibility tolerance of the cone LPs, on unit-normalised generators.
+    coplanar_angle : float
+        Two triangles are one face when their normals differ by less than this (rad).
+    coplanar_distance : float
+        ... and their planes are closer than this fraction of the model's bounding diagonal.
+    merge : float
+        Vertices closer than this fraction of the bounding diagonal are merged.
+    normal_angle : float
+        Angular tolerance (rad) when intersecting local cones of separating normals.
+    """
+
+    rank: float = 1e-6
+    cone: float = 1e-7
+    coplanar_angle: float = 1e-4
+    coplanar_distance: float = 1e-7
+    merge: float = 1e-8
+    normal_angle: float = 1e-3
+
+
+tol = Tolerances()
