@@ -1,0 +1,6 @@
+#!/usr/bin/env bash
+# Main job: install apo into .venv and run the whole pipeline on the built-in example.
+# Extra arguments go to `apo demo` (e.g. --out DIR, --seed N).
+set -euo pipefail
+APO_EXTRAS="" source "$(dirname "$0")/_venv.sh"
+exec .venv/bin/apo demo "$@"
