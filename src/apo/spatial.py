@@ -65,7 +65,7 @@ def matrix_from_axis_angle(axis: npt.ArrayLike, angle: float) -> FloatArray:
 
 
 def pose_from_position_quaternion(p: npt.ArrayLike, q: npt.ArrayLike) -> FloatArray:
-    """Return the 4x4 pose with translation ``p`` and rotation quaternion ``q = (qw, qx, qy, qz)``."""
+    """Return the 4x4 pose with translation ``p`` and quaternion ``q = (qw, qx, qy, qz)``."""
     X = np.eye(4)
     X[:3, :3] = matrix_from_quaternion(q)
     X[:3, 3] = np.asarray(p, dtype=float)

@@ -1,0 +1,209 @@
+"""Read polyhedral models from STEP, STL, OBJ and PLY files (via trimesh, imported lazily).
+
+Units
+-----
+apo works in metres. Mesh formats (STL, OBJ, PLY) carry no unit: the ``units`` argument
+says what their numbers mean and defaults to millimetres (``"mm"``), the unit of the first
+author's data and of most CAD exports. STEP files declare their own length unit; trimesh
+reads them through cascadio (OpenCASCADE), which converts the declared unit to metres while
+writing its intermediate glTF (a metre format), so STEP coordinates arrive in metres and are
+never scaled again. For STEP, ``units`` may be left out (``None``); if it is given and the
+file declares another unit, the file's unit wins and a warning says so. Note that glTF
+stores float32, so STEP coordinates are exact to about 1e-7 relative.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import GeometryError, InputFormatError
+from apo.geometry import Polyhedron, polyhedron_from_triangles
+
+__all__ = ["MESH_SUFFIXES", "UNITS", "load_polyhedron", "load_triangles", "step_length_unit"]
+
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+"""Length units accepted by ``units=``, and their size in metres."""
+
+MESH_SUFFIXES: dict[str, str] = {
+    ".step": "step",
+    ".stp": "step",
+    ".stl": "stl",
+    ".obj": "obj",
+    ".ply": "ply",
+}
+"""File name suffixes (lower case) apo reads, and their format."""
+
+DEFAULT_MESH_UNITS = "mm"
+
+_SI_PREFIX_UNITS = {"": "m", "MILLI": "mm", "CENTI": "cm", "MICRO": "um", "KILO": "km"}
+_CONVERSION_UNITS = {"INCH": "in", "FOOT": "ft", "MILLIMETRE": "mm", "CENTIMETRE": "cm"}
+
+
+def _check_units(units: str | None, path: Path) -> None:
+    if units is not None and units not in UNITS:
+        raise InputFormatError(
+            f"{path}: unknown units {units!r}; expected one of {', '.join(sorted(UNITS))}"
+        )
+
+
+def step_length_unit(path: str | Path) -> str | None:
+    """Length unit a STEP file declares for its geometry, e.g. ``"mm"``, or None if unclear.
+
+    Parameters
+    ----------
+    path : str or Path
+        STEP file (ISO 10303-21).
+
+    Returns
+    -------
+    str or None
+        ``"m"``, ``"cm"``, ``"mm"``, ``"um"``, ``"km"``, ``"in"`` or ``"ft"``: the unit of the
+        ``LENGTH_UNIT`` that the file's ``GLOBAL_UNIT_ASSIGNED_CONTEXT`` entities use, when
+        they all use the same one; None otherwise.
+    """
+    text = Path(path).read_text(encoding="latin-1", errors="replace")
+    entities = {
+        m.group(1): m.group(2)
+        for m in re.finditer(r"#(\d+)\s*=\s*(.*?);\s*(?=#\d+\s*=|ENDSEC)", text, re.S)
+    }
+    referenced: set[str] = set()
+    for body in entities.values():
+        for ctx in re.finditer(r"GLOBAL_UNIT_ASSIGNED_CONTEXT\s*\(\s*\(([^)]*)\)", body):
+            referenced.update(re.findall(r"#(\d+)", ctx.group(1)))
+    found: set[str] = set()
+    for ref in referenced:
+        body = entities.get(ref, "")
+        if "LENGTH_UNIT" not in body:
+            continue
+        si = re.search(r"SI_UNIT\s*\(\s*(\$|\.(\w+)\.)\s*,\s*\.METRE\.\s*\)", body)
+        conv = re.search(r"CONVERSION_BASED_UNIT\s*\(\s*'([^']*)'", body)
+        if si:
+            found.add(_SI_PREFIX_UNITS.get(si.group(2) or "", "?"))
+        elif conv:
+            found.add(_CONVERSION_UNITS.get(conv.group(1).upper(), "?"))
+        else:
+            found.add("?")
+    if len(found) == 1 and "?" not in found:
+        return found.pop()
+    return None
+
+
+def load_triangles(
+    path: str | Path, *, units: str | None = None
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """Read the triangles of a model file, in metres.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.step``/``.stp``, ``.stl``, ``.obj`` or ``.ply`` (case-insensitive suffix).
+    units : {"mm", "cm", "m", "in"} or None
+        Unit of the numbers in a mesh file (None: ``"mm"``). For STEP files the file's own
+        unit is used (see the module notes).
+
+    Returns
+    -------
+    vertices : ndarray, shape (N, 3)
+        Metres, model frame (duplicates not merged).
+    triangles : ndarray of int, shape (T, 3)
+        Vertex indices, as stored in the file.
+
+    Raises
+    ------
+    InputFormatError
+        Missing file, unknown suffix, unknown units, unreadable or empty file.
+    """
+    path = Path(path)
+    _check_units(units, path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise InputFormatError(
+            f"{path}: unknown model file type {path.suffix!r}; expected one of "
+            f"{', '.join(sorted(MESH_SUFFIXES))}"
+        )
+    if not path.is_file():
+        raise InputFormatError(f"{path}: no such file")
+    fmt = MESH_SUFFIXES[suffix]
+    if fmt == "step":
+        scale = 1.0
+        if units is not None:
+            declared = step_length_unit(path)
+            if declared is not None and declared != units:
+                warnings.warn(
+                    f"{path}: STEP file declares its lengths in {declared!r}; "
+                    f"ignoring units={units!r}",
+                    stacklevel=3,
+                )
+    else:
+        scale = UNITS[units if units is not None else DEFAULT_MESH_UNITS]
+
+    import trimesh  # lazy: keeps `import apo` cheap
+
+    try:
+        loaded = trimesh.load(str(path), file_type=fmt, process=False)
+    except Exception as exc:  # trimesh and cascadio raise many types
+        raise InputFormatError(f"{path}: cannot read as {fmt.upper()}: {exc}") from exc
+    if isinstance(loaded, trimesh.Scene):
+        if len(loaded.geometry) == 0:
+            raise InputFormatError(f"{path}: the file contains no triangles")
+        mesh = loaded.to_mesh()
+    elif isinstance(loaded, trimesh.Trimesh):
+        mesh = loaded
+    else:
+        raise InputFormatError(
+            f"{path}: the file holds a {type(loaded).__name__}, not a triangle mesh"
+        )
+    vertices = np.asarray(mesh.vertices, dtype=np.float64) * scale
+    triangles = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if len(triangles) == 0 or len(vertices) == 0:
+        raise InputFormatError(f"{path}: the file contains no triangles")
+    return vertices, triangles
+
+
+def load_polyhedron(
+    path: str | Path, *, units: str | None = None, name: str | None = None
+) -> Polyhedron:
+    """Read a closed polyhedral model from a STEP, STL, OBJ or PLY file.
+
+    Parameters
+    ----------
+    path : str or Path
+        Model file; the suffix (case-insensitive) selects the reader.
+    units : {"mm", "cm", "m", "in"} or None
+        Unit of the numbers in a mesh file (None: ``"mm"``). STEP files are read in the unit
+        they declare and converted to metres; a different ``units`` there only warns.
+    name : str, optional
+        Model name (default: the file name), used in messages.
+
+    Returns
+    -------
+    Polyhedron
+        In metres, in the file's frame, with coplanar triangles merged into faces.
+
+    Raises
+    ------
+    InputFormatError
+        Missing file, unknown suffix or units, unreadable or empty file.
+    GeometryError
+        The mesh is not a closed, manifold, consistently oriented solid (the message starts
+        with the file name).
+
+    Examples
+    --------
+    >>> peg = load_polyhedron("peg.step")  # doctest: +SKIP
+    >>> len(peg.faces), len(peg.edges), len(peg.vertices)  # doctest: +SKIP
+    (10, 24, 16)
+    """
+    path = Path(path)
+    vertices, triangles = load_triangles(path, units=units)
+    try:
+        return polyhedron_from_triangles(vertices, triangles, name=name or path.name)
+    except GeometryError as exc:
+        if name is None and not str(exc).startswith(path.name):
+            raise GeometryError(f"{path}: {exc}") from exc
+        raise

@@ -1,0 +1,22 @@
+"""Shared pytest fixtures: the first author's data beside the repository."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+def shared_data_dir() -> Path | None:
+    """``../shared/data/apo-peg-in-hole`` beside the repository, or None if absent."""
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "apo-peg-in-hole"
+    return path if path.is_dir() else None
+
+
+@pytest.fixture
+def real_data_dir() -> Path:
+    """The first author's peg-in-hole data directory; skips the test when it is absent."""
+    path = shared_data_dir()
+    if path is None:
+        pytest.skip("first author's data not found at ../shared/data/apo-peg-in-hole")
+    return path

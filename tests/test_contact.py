@@ -1,0 +1,479 @@
+"""Tests of apo.contact: canonical contact states, consistency, naive vs fast, residuals."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from apo.contact import (
+    ContactFinder,
+    ContactKind,
+    ContactState,
+    contact_points,
+    default_angle_tolerance,
+    default_threshold,
+    element_residuals,
+    find_contacts,
+    find_contacts_batch,
+    find_contacts_naive,
+    residual_counts,
+)
+from apo.geometry import Polyhedron, polyhedron_from_triangles
+from apo.shapes import block_with_square_hole, box, t_peg, u_block
+from apo.spatial import invert_pose, matrix_from_axis_angle, pose_from_twist
+
+# --------------------------------------------------------------------------------------------
+# Scenes
+# --------------------------------------------------------------------------------------------
+
+
+def pose(R: np.ndarray | None = None, t: object = (0.0, 0.0, 0.0)) -> np.ndarray:
+    X = np.eye(4)
+    if R is not None:
+        X[:3, :3] = R
+    X[:3, 3] = np.asarray(t, dtype=float)
+    return X
+
+
+def transformed(poly: Polyhedron, X: np.ndarray) -> Polyhedron:
+    """The same model with its vertices moved by the rigid transform X (same feature ids)."""
+    V = poly.vertices @ X[:3, :3].T + X[:3, 3]
+    return polyhedron_from_triangles(V, np.concatenate(poly.face_triangles), name=poly.name)
+
+
+TABLE = box([1.0, 1.0, 0.1], center=[0.0, 0.0, -0.05])  # top face z = 0, edges at x, y = +-0.5
+CUBE = box([0.1, 0.1, 0.1], center=[0.0, 0.0, 0.05])  # bottom face z = 0 in its frame
+POCKET = block_with_square_hole()  # pocket x, y in [-0.02, 0.02], floor z = 0.02, rim 0.05
+PEG = box([0.04, 0.04, 0.06], center=[0.0, 0.0, 0.03])
+SLOT_T = u_block(slot_depth=0.070)  # slot floor y = 0.018, top y = 0.088
+TPEG = t_peg()  # stem 70 long, crossbar 18 tall: seated at y = 0.018
+# Fig. 18: a wedge whose top is a convex edge along y at x = z = 0, y in [-0.1, 0.1].
+WEDGE = transformed(
+    box([0.1, 0.2, 0.1]),
+    pose(matrix_from_axis_angle([0, 1, 0], np.pi / 4), (0.0, 0.0, -0.05 * np.sqrt(2))),
+)
+
+
+def scene_corner_on_table() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    R = matrix_from_axis_angle([1, -1, 0], 0.3)
+    c = np.array([-0.05, -0.05, 0.0])  # this corner is the lowest after the tilt
+    return CUBE, TABLE, pose(R, -R @ c)
+
+
+def scene_edge_on_table() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    R = matrix_from_axis_angle([1, 0, 0], 0.3)
+    c = np.array([0.0, -0.05, 0.0])  # the bottom edge along x at y = -0.05 stays down
+    return CUBE, TABLE, pose(R, c - R @ c)
+
+
+def scene_crossing_edges() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    # Cube standing on an edge (45 deg about x), that edge tilted 0.2 rad about y, its
+    # lowest point (the edge's midpoint) on the table's convex edge x = 0.5.
+    R = matrix_from_axis_angle([0, 1, 0], 0.2) @ matrix_from_axis_angle([1, 0, 0], np.pi / 4)
+    VG = CUBE.vertices @ R.T
+    mid = 0.5 * (VG[CUBE.edges[:, 0]] + VG[CUBE.edges[:, 1]])
+    m = mid[np.argmin(mid[:, 2])]
+    return CUBE, TABLE, pose(R, np.array([0.5, 0.0, 0.0]) - m)
+
+
+def scene_vertex_on_edge() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    R = matrix_from_axis_angle([1, 1, 1], 0.5)
+    c = np.array([-0.05, -0.05, 0.0])
+    return CUBE, TABLE, pose(R, np.array([0.5, 0.0, 0.0]) - R @ c)
+
+
+def scene_vertex_on_vertex() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    R = matrix_from_axis_angle([1, 1, 0], 0.4)
+    c = np.array([-0.05, -0.05, 0.0])
+    return CUBE, TABLE, pose(R, np.array([0.5, 0.5, 0.0]) - R @ c)
+
+
+def scene_parallel_edges() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    cb = box([0.1, 0.1, 0.1])
+    R = matrix_from_axis_angle([0, 1, 0], np.pi / 4 + 0.3)
+    VG = cb.vertices @ R.T
+    lowest = VG[VG[:, 2] < VG[:, 2].min() + 1e-9]  # the lowest edge (along y)
+    low = lowest[np.argmin(lowest[:, 1])]  # its end at y = -0.05
+    # The cube's edge spans y in [0.05, 0.15], the wedge's [-0.1, 0.1]: overlap [0.05, 0.1].
+    return cb, WEDGE, pose(R, np.array([0.0, 0.05, 0.0]) - low)
+
+
+def scene_wedged_block() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    # A 36 x 30 x 20 mm block tilted about y until its diagonal spans the 40 mm pocket.
+    w, h, theta = 0.036, 0.02, 0.26687936851705324  # w cos(theta) + h sin(theta) = 0.04
+    blk = box([w, 0.03, h])
+    R = matrix_from_axis_angle([0, 1, 0], theta)
+    x = (blk.vertices @ R.T)[:, 0]
+    return blk, POCKET, pose(R, (-0.02 - x.min(), 0.0, 0.035))
+
+
+def scene_three_walls() -> tuple[Polyhedron, Polyhedron, np.ndarray]:
+    small = box([0.01, 0.01, 0.01], center=[0.005, 0.005, 0.005])
+    return small, POCKET, pose(t=(-0.02, -0.02, 0.02))  # in the pocket's corner
+
+
+def kinds(state: ContactState) -> Counter[str]:
+    return Counter(e.kind.value for e in state.elements)
+
+
+# (name, scene, expected kind counts, n singular elements, fig25) with one line of reasoning.
+CANONICAL = [
+    # Nothing within the threshold; all six DOF are free (maintaining).
+    ("none", lambda: (CUBE, TABLE, pose(t=(0, 0, 0.01))), {}, 0, (3, 0, 0, 3, 0, 0, 0, 0)),
+    # One vertex on the table: one normal +z; any rotation is kept by a compensating slide.
+    ("corner", scene_corner_on_table, {"VF": 1}, 0, (2, 1, 0, 3, 0, 0, 1, 0)),
+    # Edge x edge: one normal e_G x e_E = +z-ish; same numbers as one point contact.
+    ("crossing", scene_crossing_edges, {"EE": 1}, 0, (2, 1, 0, 3, 0, 0, 1, 0)),
+    # Edge on face: two VF, normal +z at two points on a line along x: rotation about z and
+    # about the edge keep contact, tipping about y lifts one end (either way: type I).
+    ("edge_on_face", scene_edge_on_table, {"VF": 2}, 0, (2, 1, 0, 2, 1, 0, 1, 1)),
+    # Block on the table: 4 VF at the corners; slide in x, y and turn about z; lift; tip 2.
+    ("block", lambda: (CUBE, TABLE, pose()), {"VF": 4}, 0, (2, 1, 0, 1, 2, 0, 1, 2)),
+    # Block against one wall (normal +x): the same numbers about another axis.
+    (
+        "wall",
+        lambda: (CUBE, box([0.1, 1.0, 1.0], center=[-0.1, 0.0, 0.0]), pose()),
+        {"VF": 4},
+        0,
+        (2, 1, 0, 1, 2, 0, 1, 2),
+    ),
+    # Cube in a corner of three walls: its corner gives 3 VF (floor, two walls), the other
+    # corners on 2 or 1 walls: 3 + 2 + 2 + 1 (floor) + 2 + 1 + 1 (walls) = 12 VF, normals
+    # +x, +y, +z: every translation and rotation is detaching (moving out frees all).
+    ("three_walls", scene_three_walls, {"VF": 12}, 0, (0, 3, 0, 0, 3, 0, 3, 3)),
+    # Square peg seated: each bottom corner in a concave corner (3 VF), each side face against
+    # a wall up to the rim where the peg's vertical edges cross the rim edges (8 EE): only +z
+    # is free (detaching), x and y constrained; all rotations constrained.
+    (
+        "peg_seated",
+        lambda: (PEG, POCKET, pose(t=(0, 0, 0.02))),
+        {"VF": 12, "EE": 8},
+        0,
+        (0, 1, 2, 0, 0, 3, 3, 3),
+    ),
+    # Same peg lifted off the floor: 8 VF on the walls + 8 EE; z slides both ways.
+    (
+        "peg_lifted",
+        lambda: (PEG, POCKET, pose(t=(0, 0, 0.025))),
+        {"VF": 8, "EE": 8},
+        0,
+        (1, 0, 2, 0, 0, 3, 2, 3),
+    ),
+    # Cube corner on the table's convex edge: VE with two normals (the cone between the
+    # edge's face normals): singular; dropping it leaves no contact (singular M = 3).
+    ("vertex_on_edge", scene_vertex_on_edge, {"VE": 1}, 1, (3, 0, 0, 3, 0, 0, 2, 0)),
+    # Corner on corner: VV, several normals at one point: singular.
+    ("vertex_on_vertex", scene_vertex_on_vertex, {"VV": 1}, 1, (3, 0, 0, 3, 0, 0, 3, 0)),
+    # Paper Fig. 18: parallel convex edges overlap on [0.05, 0.1]: VE and EV at the ends,
+    # each with the same two normals (one per face of the wedge's and the cube's edge
+    # intersected): singular; restraining: 2 normals (rank 2) at 2 points along y (r_a = 4).
+    ("parallel_edges", scene_parallel_edges, {"VE": 1, "EV": 1}, 2, (3, 0, 0, 3, 0, 0, 2, 2)),
+    # T-peg seated in the U-slot: stem corners on the slot's bottom corner vertices give
+    # VE x 2 each with one normal (floor +y, wall +-x; faces flush at the front/back edge),
+    # crossbar corners on the top faces' front/back edges VE (normal +y), the peg's reflex
+    # corners at the rim vertices EV x 2 (+y, +-x): 12 VE + 8 EV, none singular. Slide along
+    # z (M), lift (D), x constrained; rotation about x lifts either way, others constrained.
+    (
+        "t_peg_seated",
+        lambda: (TPEG, SLOT_T, pose(t=(0, 0.018, 0))),
+        {"VE": 12, "EV": 8},
+        0,
+        (1, 1, 1, 0, 1, 2, 2, 3),
+    ),
+    # Block wedged across the pocket (tilted, touching the left wall with its top edge and
+    # the right wall with its bottom edge): 4 VF (+x, -x); x constrained, y, z slide;
+    # rotation about y only un-wedges one way (type II), about z only together with it.
+    ("wedged", scene_wedged_block, {"VF": 4}, 0, (2, 0, 1, 1, 2, 0, 1, 2)),
+]
+
+
+@pytest.mark.parametrize(("name", "scene", "expected", "n_singular", "fig25"), CANONICAL)
+def test_canonical_states(
+    name: str, scene: object, expected: dict[str, int], n_singular: int, fig25: tuple[int, ...]
+) -> None:
+    G, E, X = scene()  # type: ignore[operator]
+    state = find_contacts(G, E, X)
+    assert kinds(state) == Counter(expected), name
+    assert sum(e.singular for e in state.elements) == n_singular
+    assert state.singular == (n_singular > 0)
+    assert [e.key for e in state.elements] == sorted(e.key for e in state.elements)
+    for e in state.elements:
+        assert np.allclose(np.linalg.norm(e.normals, axis=1), 1.0)
+    from apo.dof import analyze
+
+    assert analyze(contact_points(state)).fig25 == fig25, name
+
+
+def test_rotation_detaching_types() -> None:
+    from apo.dof import analyze
+
+    # Edge on a face: tipping about the axis perpendicular to the edge goes both ways.
+    r1 = analyze(contact_points(find_contacts(*scene_edge_on_table()))).rotation
+    assert (r1.detaching, r1.detaching_type1, r1.detaching_type2) == (1, 1, 0)
+    # Wedged block: it can only turn the un-wedging way (type II) about y, and about z.
+    r2 = analyze(contact_points(find_contacts(*scene_wedged_block()))).rotation
+    assert (r2.detaching, r2.detaching_type1, r2.detaching_type2) == (2, 0, 2)
+
+
+def test_normals_point_from_environment_to_grasped() -> None:
+    state = find_contacts(CUBE, TABLE, pose())
+    assert all(np.allclose(e.normals, [[0, 0, 1]]) for e in state.elements)
+    assert np.allclose(sorted(e.point[0] for e in state.elements), [-0.05, -0.05, 0.05, 0.05])
+    ee = find_contacts(*scene_crossing_edges()).elements[0]
+    assert ee.normals[0, 2] > 0.9  # e_G x e_E signed upward, out of the table
+
+
+def test_three_walls_corner_vertex_is_three_face_contacts() -> None:
+    state = find_contacts(*scene_three_walls())
+    corner = [e for e in state.elements if e.grasped == ("v", 0)]
+    normals = sorted(tuple(np.round(e.normals[0], 6)) for e in corner)
+    assert normals == [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)]
+    assert all(e.kind is ContactKind.VF and e.environment[0] == "f" for e in corner)
+
+
+def test_flush_faces_at_a_convex_edge_give_one_normal() -> None:
+    # THEORY pitfall: a peg's bottom flat on a block top with peg vertices on the block's
+    # edge: the local obstacle is a half-space, so those VE elements have the face normal.
+    blk = box([0.1, 0.1, 0.1], center=[0, 0, -0.05])
+    pg = box([0.04, 0.04, 0.04], center=[0.02, 0.02, 0.02])
+    state = find_contacts(pg, blk, pose(t=(0.01, 0.0, 0.0)))  # peg x in [0.01, 0.05]
+    assert kinds(state) == Counter({"VE": 2, "VF": 2})
+    assert not state.singular
+    assert all(np.allclose(e.normals, [[0, 0, 1]]) for e in state.elements)
+
+
+def test_touching_holds_every_feature_pair_within_threshold() -> None:
+    state = find_contacts(CUBE, TABLE, pose())
+    top = next(e.environment for e in state.elements)
+    bottom = next(f for f in range(6) if np.allclose(CUBE.face_normals[f], [0, 0, -1]))
+    assert (("f", bottom), top) in state.touching  # face on face
+    assert all((e.grasped, e.environment) in state.touching for e in state.elements)
+    # Every feature whose closure meets the bottom face touches the top: 4 vertices, 4 bottom
+    # and 4 vertical edges, the bottom and 4 side faces.
+    assert sum(1 for g, e in state.touching if e == top) == 17
+    assert find_contacts(CUBE, TABLE, pose(t=(0, 0, 0.01))).touching == frozenset()
+
+
+def test_empty_state_and_validation() -> None:
+    state = find_contacts(CUBE, TABLE, pose(t=(3.0, 0.0, 0.0)))
+    assert state.elements == () and state.touching == frozenset()
+    with pytest.raises(ValueError, match="shape"):
+        find_contacts(CUBE, TABLE, np.eye(3))
+    with pytest.raises(ValueError, match="non-finite"):
+        find_contacts(CUBE, TABLE, np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="threshold"):
+        find_contacts(CUBE, TABLE, np.eye(4), threshold=-1.0)
+    with pytest.raises(ValueError, match="rotation"):
+        find_contacts(CUBE, TABLE, np.diag([1.0, 1.0, 2.0, 1.0]))
+
+
+def test_defaults_are_scale_aware() -> None:
+    d = default_threshold(CUBE, TABLE)
+    assert d == pytest.approx(1e-3 * CUBE.scale)
+    assert default_angle_tolerance(CUBE, TABLE, d) == pytest.approx(4e-3)
+    small = transformed(CUBE, pose())
+    big_state = find_contacts(CUBE, TABLE, pose(t=(0, 0, 0.5 * d)))
+    assert kinds(big_state) == Counter({"VF": 4})
+    assert find_contacts(small, TABLE, pose(t=(0, 0, 2 * d))).elements == ()
+
+
+# --------------------------------------------------------------------------------------------
+# Real data: the first author's T-peg in the U-hole, final pose
+# --------------------------------------------------------------------------------------------
+
+
+def _read_last_scene(path: Path) -> dict[str, np.ndarray]:
+    """Poses of the last scene of a .pose.list: tag -> X_CM (metres)."""
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    rows = [ln for ln in lines if len(ln) == 8]
+    out = {}
+    for ln in rows[-2:]:
+        x, y, z, ax, ay, az, ang = (float(v) for v in ln[1:])
+        out[ln[0]] = pose(matrix_from_axis_angle([ax, ay, az], ang), np.array([x, y, z]) / 1e3)
+    return out
+
+
+@pytest.mark.realdata
+def test_real_t_peg_final_pose_is_seated(real_data_dir: Path) -> None:
+    from apo.dof import analyze
+    from apo.io.meshes import load_polyhedron
+
+    peg = load_polyhedron(real_data_dir / "peg.step")
+    hole = load_polyhedron(real_data_dir / "hole.step")
+    scene = _read_last_scene(real_data_dir / "peg_in_hole.pose.list")
+    X_EG = invert_pose(scene["0"]) @ scene["2"]  # tag 0 is still (the hole), 2 moves (peg)
+    # Observed pose: ~1 mm off and tilted 3.4 deg about y (2 mm across the 35 mm thickness).
+    state = find_contacts(peg, hole, X_EG, threshold=0.004)
+    # Seated as the synthetic T-peg: 12 VE (flush at front/back edges) + 8 EV, non-singular.
+    assert kinds(state) == Counter({"VE": 12, "EV": 8})
+    assert not state.singular
+    assert analyze(contact_points(state)).fig25 == (1, 1, 1, 0, 1, 2, 2, 3)
+
+
+# --------------------------------------------------------------------------------------------
+# Consistency (hypothesis), invariance, naive vs fast
+# --------------------------------------------------------------------------------------------
+
+CONSISTENCY_SCENES = {
+    "block": lambda: (CUBE, TABLE, pose()),
+    "edge_on_face": scene_edge_on_table,
+    "peg_seated": lambda: (PEG, POCKET, pose(t=(0, 0, 0.02))),
+    "three_walls": scene_three_walls,
+    "t_peg_seated": lambda: (TPEG, SLOT_T, pose(t=(0, 0.018, 0))),
+    "vertex_on_edge": scene_vertex_on_edge,
+    "parallel_edges": scene_parallel_edges,
+    "crossing": scene_crossing_edges,
+}
+_REFERENCE = {k: find_contacts(*f()) for k, f in CONSISTENCY_SCENES.items()}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    name=st.sampled_from(sorted(CONSISTENCY_SCENES)),
+    shift=st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3),
+    rot=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+)
+def test_same_contact_slightly_apart_or_into_gives_same_keys(
+    name: str, shift: list[float], rot: list[float]
+) -> None:
+    G, E, X = CONSISTENCY_SCENES[name]()
+    d = default_threshold(G, E)
+    # Shift by up to 0.3 threshold per axis (apart or into) and turn by up to 0.1 threshold
+    # over the larger model size, about the first contact point.
+    p = _REFERENCE[name].elements[0].point
+    w = np.asarray(rot) * 0.1 * d / max(G.scale, E.scale)
+    T = pose(t=p) @ pose_from_twist(np.r_[w, 0, 0, 0]) @ pose(t=-p)
+    X2 = pose(t=np.asarray(shift) * d / np.sqrt(3)) @ T @ X
+    state = find_contacts(G, E, X2)
+    assert state.key == _REFERENCE[name].key
+    assert [len(e.normals) for e in state.elements] == [
+        len(e.normals) for e in _REFERENCE[name].elements
+    ]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    name=st.sampled_from(sorted(CONSISTENCY_SCENES)),
+    axis=st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(
+        lambda a: np.linalg.norm(a) > 0.1
+    ),
+    angle=st.floats(-3.0, 3.0),
+    t=st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+)
+def test_rigid_motion_of_the_environment_model(
+    name: str, axis: list[float], angle: float, t: list[float]
+) -> None:
+    G, E, X = CONSISTENCY_SCENES[name]()
+    T = pose(matrix_from_axis_angle(axis, angle), t)
+    E2 = transformed(E, T)  # E's model vertices moved by T: same feature ids
+    ref = _REFERENCE[name]
+    state = find_contacts(G, E2, T @ X, threshold=default_threshold(G, E))
+    assert state.key == ref.key
+    assert state.touching == ref.touching
+    for a, b in zip(state.elements, ref.elements, strict=True):
+        assert np.allclose(a.point, T[:3, :3] @ b.point + T[:3, 3], atol=1e-9)
+        back = a.normals @ T[:3, :3]  # the same rays, possibly in another order
+        assert len(back) == len(b.normals)
+        assert np.all(np.max(back @ b.normals.T, axis=1) > 1 - 1e-9)
+
+
+@pytest.mark.parametrize("kd", [False, True], ids=["dense", "kdtree"])
+@pytest.mark.parametrize("seed", range(4))
+def test_naive_and_fast_agree_near_contact(
+    seed: int, kd: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import apo.contact
+
+    if kd:  # force the k-d tree broad phase even for these small models
+        monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+    rng = np.random.default_rng(seed)
+    scenes = list(CONSISTENCY_SCENES.values())
+    for k in range(len(scenes)):
+        G, E, X = scenes[(k + seed) % len(scenes)]()
+        d = 10 * default_threshold(G, E)
+        xi = np.r_[rng.normal(size=3) * d / G.scale, rng.normal(size=3) * d]
+        X2 = pose_from_twist(xi) @ X
+        fast = find_contacts(G, E, X2, threshold=d)
+        slow = find_contacts_naive(G, E, X2, threshold=d)
+        assert fast.key == slow.key
+        assert fast.touching == slow.touching
+        for a, b in zip(fast.elements, slow.elements, strict=True):
+            assert np.allclose(a.point, b.point) and np.allclose(a.normals, b.normals)
+
+
+def test_naive_and_fast_agree_on_a_finer_mesh(monkeypatch: pytest.MonkeyPatch) -> None:
+    import apo.contact
+    from apo.shapes import icosphere
+
+    monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+    ball = icosphere(2, radius=0.05)  # 320 faces, centred on the origin
+    plate = transformed(icosphere(2, radius=0.5), pose(t=(0, 0, -0.5)))  # top vertex at 0
+    finder = ContactFinder(ball, plate, threshold=2e-3)
+    for z in (0.0505, 0.06):
+        X = pose(t=(0.0, 0.0, z))
+        fast, slow = finder.find(X), finder.find_naive(X)
+        assert fast.key == slow.key and fast.touching == slow.touching
+    assert [e.kind for e in finder.find(pose(t=(0.0, 0.0, 0.0505))).elements] == [
+        ContactKind.VV  # both spheres' poles
+    ]
+    assert apo.contact._model_data(plate)._trees is not None  # the k-d tree path ran
+
+
+def test_batch_matches_single() -> None:
+    G, E, X = CONSISTENCY_SCENES["peg_seated"]()
+    poses = [X, pose(t=(0, 0, 0.025)), pose(t=(0, 0, 0.2))]
+    batch = find_contacts_batch(G, E, poses)
+    assert [s.key for s in batch] == [find_contacts(G, E, P).key for P in poses]
+    assert batch[2].elements == ()
+
+
+# --------------------------------------------------------------------------------------------
+# Residuals for pose correction
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", [*sorted(CONSISTENCY_SCENES), "vertex_on_vertex"])
+def test_residuals_vanish_at_exact_contact_and_jacobian_matches(name: str) -> None:
+    scene = CONSISTENCY_SCENES.get(name, scene_vertex_on_vertex)
+    G, E, X = scene()
+    els = find_contacts(G, E, X).elements
+    r, J = element_residuals(G, E, X, els)
+    counts = residual_counts(els)
+    assert r.shape == (counts.sum(),) and J.shape == (counts.sum(), 6)
+    assert np.allclose(r, 0.0, atol=1e-12)
+    # Finite differences of a left twist [omega; v] about an off-contact state.
+    rng = np.random.default_rng(1)
+    X0 = pose_from_twist(np.r_[rng.normal(size=3) * 1e-3, rng.normal(size=3) * 1e-4]) @ X
+    r0, J0 = element_residuals(G, E, X0, els)
+    h = 1e-7
+    num = np.empty_like(J0)
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        num[:, k] = (element_residuals(G, E, pose_from_twist(xi) @ X0, els)[0] - r0) / h
+    assert np.allclose(num, J0, atol=1e-5)
+
+
+def test_residual_signs() -> None:
+    G, E, X = CUBE, TABLE, pose(t=(0, 0, 0.001))
+    els = find_contacts(G, E, pose()).elements
+    r, _ = element_residuals(G, E, X, els)
+    assert np.allclose(r, 0.001)  # VF: positive when the vertex is above the face
+    assert element_residuals(G, E, X, [])[0].shape == (0,)
+
+
+def test_model_cache_does_not_keep_models_alive() -> None:
+    import gc
+    import weakref
+
+    a = box([0.1, 0.1, 0.1], center=[0.0, 0.0, 0.05])
+    find_contacts(a, TABLE, pose())
+    ref = weakref.ref(a)
+    del a
+    gc.collect()
+    assert ref() is None
