@@ -1,0 +1,598 @@
+r"""Pose files of a demonstration: the first author's ``.pose.list`` and a plain CSV.
+
+Both readers return a :class:`Demonstration`: time stamps (s) and the poses ``X_EG`` of the
+grasped object G in the environment frame E, in **metres** (converted from the file's units
+here, at the boundary; ``docs/conventions.md``).
+
+``.pose.list`` (the first author's format, camera frame C)::
+
+    No of Models: 2
+    .\\peg.step                      <- model 0: the grasped object G
+    .\\hole.step                     <- model 1: the environment E
+                                     <- blank line
+    No of Scenes: 41
+    2 -27.24 999.61 1429.92  -0.0497 0.0011 0.9988 3.1405   <- tag x y z ax ay az angle
+    0 106.73 982.08 1437.27   0.0309 0.0013 -0.9995 3.1338
+                                     <- blank line between scenes
+    ...
+
+Model paths are relative to the list file and may use Windows separators. In a scene the
+i-th line is the pose ``X_C<i>`` of the i-th model: position in the file's units, rotation
+as an axis (any non-zero length; normalised) and an angle in radians. The leading integer is
+an id (tag) the tracker gave the object; it is kept (:attr:`Demonstration.tags`) but does not
+decide which model a line belongs to. ``X_EG = inv(X_CE) @ X_CG`` per scene. The file has no
+time stamps: frame ``k`` gets ``t = k / fps`` with ``fps = 1`` unless given.
+
+CSV (written by :func:`write_pose_csv`, e.g. by apo's perception)::
+
+    t,x,y,z,qw,qx,qy,qz[,extra,...]
+
+one row per frame, the pose of G in E: position in the caller's units, unit quaternion
+``(qw, qx, qy, qz)`` (normalised on reading). The header row is optional: a first row whose
+first field is not a number is a header, and must begin with exactly those eight names; any
+further columns are carried through by name (``Demonstration.extra``; without a header they
+are named ``col8``, ``col9``, ...). Blank lines and lines starting with ``#`` are ignored.
+Time stamps must strictly increase.
+
+Every error is an :class:`apo.errors.InputFormatError` naming the file and the line.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import InputFormatError
+from apo.spatial import (
+    matrix_from_axis_angle,
+    matrix_from_quaternion,
+    quaternion_from_matrix,
+)
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+__all__ = [
+    "CSV_COLUMNS",
+    "DEFAULT_UNITS",
+    "UNITS",
+    "Demonstration",
+    "load_demonstration",
+    "read_pose_csv",
+    "read_pose_list",
+    "write_pose_csv",
+]
+
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+"""Length units accepted by ``units=``, and their size in metres."""
+
+DEFAULT_UNITS = "mm"
+"""Units assumed by :func:`load_demonstration` when none are given (the author's data)."""
+
+CSV_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+"""The required leading columns of a pose CSV, in order."""
+
+_HEADER_MODELS = re.compile(r"^\s*No\s+of\s+Models\s*:\s*(\S+)\s*$", re.IGNORECASE)
+_HEADER_SCENES = re.compile(r"^\s*No\s+of\s+Scenes\s*:\s*(\S+)\s*$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class Demonstration:
+    """An observed demonstration: one pose of the grasped object per frame.
+
+    Attributes
+    ----------
+    times : ndarray, shape (N,), seconds
+        Strictly increasing time stamps (``k / fps`` for a ``.pose.list``).
+    X_EG : ndarray, shape (N, 4, 4), metres
+        Pose of the grasped object G in the environment frame E per frame.
+    units : str
+        Length unit of the source file (positions were converted from it to metres).
+    source : Path or None
+        The file read.
+    grasped_path, environment_path : Path or None
+        Model files of G and E (``.pose.list``: resolved against the list's directory;
+        CSV: None unless given to :func:`load_demonstration`).
+    model_paths : tuple of Path
+        Every model listed (``.pose.list``), in order; G first, E second.
+    X_C : ndarray, shape (N, n_models, 4, 4), metres, or None
+        Raw camera-frame poses ``X_C<i>`` of every model (``.pose.list`` only).
+    tags : ndarray of int, shape (N, n_models), or None
+        The tracker's id at the start of each pose line (``.pose.list`` only).
+    extra : dict of str to ndarray, shape (N,)
+        Further CSV columns by name (e.g. ``"confidence"``).
+    lines : ndarray of int, shape (N,)
+        1-based line in the source of each frame's (first) pose line.
+    fps : float or None
+        Frame rate used to make ``times`` (``.pose.list``); None when the file had times.
+    """
+
+    times: FloatArray
+    X_EG: FloatArray
+    units: str
+    source: Path | None = None
+    grasped_path: Path | None = None
+    environment_path: Path | None = None
+    model_paths: tuple[Path, ...] = ()
+    X_C: FloatArray | None = None
+    tags: IntArray | None = None
+    extra: Mapping[str, FloatArray] = field(default_factory=dict)
+    lines: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    fps: float | None = None
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames N."""
+        return int(self.times.shape[0])
+
+    @property
+    def X_CG(self) -> FloatArray | None:
+        """Camera-frame poses of G, shape (N, 4, 4), metres (``.pose.list`` only)."""
+        return None if self.X_C is None else self.X_C[:, 0]
+
+    @property
+    def X_CE(self) -> FloatArray | None:
+        """Camera-frame poses of E, shape (N, 4, 4), metres (``.pose.list`` only)."""
+        return None if self.X_C is None else self.X_C[:, 1]
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _scale(units: str, where: str) -> float:
+    if units not in UNITS:
+        raise InputFormatError(
+            f"{where}: unknown units {units!r}; expected one of {', '.join(sorted(UNITS))}"
+        )
+    return UNITS[units]
+
+
+def _read_text(path: Path) -> str:
+    if not path.is_file():
+        raise InputFormatError(f"{path}: file not found")
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputFormatError(f"{path}: not a text file ({exc.reason})") from None
+    except OSError as exc:
+        raise InputFormatError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def _number(token: str, where: str, what: str) -> float:
+    try:
+        value = float(token)
+    except ValueError:
+        raise InputFormatError(f"{where}: {what} is not a number: {token!r}") from None
+    if not math.isfinite(value):
+        raise InputFormatError(f"{where}: {what} is not finite: {token!r}")
+    return value
+
+
+def _model_path(text: str, base: Path) -> Path:
+    r"""Resolve a model path as written (``.\\peg.step``, ``models/peg.step``) against base."""
+    rel = text.strip().replace("\\", "/")
+    p = Path(rel)
+    return p if p.is_absolute() else base / p
+
+
+# --------------------------------------------------------------------------------------------
+# .pose.list
+# --------------------------------------------------------------------------------------------
+
+
+def read_pose_list(
+    path: str | Path, *, units: str = DEFAULT_UNITS, fps: float | None = None
+) -> Demonstration:
+    """Read the first author's ``.pose.list`` (camera-frame poses of every model per scene).
+
+    Parameters
+    ----------
+    path : str or Path
+        The list file.
+    units : {"mm", "cm", "m", "in"}, optional
+        Length unit of the positions in the file (the author's data: mm).
+    fps : float, optional
+        Frame rate giving ``times = k / fps`` (the format has no time stamps); 1 if None.
+
+    Returns
+    -------
+    Demonstration
+        ``X_EG = inv(X_CE) @ X_CG`` per scene (model 0 is G, model 1 is E), metres; the raw
+        poses in ``X_C``, the ids in ``tags``, model paths resolved against the list's
+        directory.
+
+    Raises
+    ------
+    InputFormatError
+        Missing file, a wrong header, fewer than two models, a count of models or scenes that
+        differs from the header (expected vs found), a scene with the wrong number of lines,
+        a line not of 8 fields, a malformed or non-finite number, a zero rotation axis with a
+        non-zero angle, no scenes at all, or a non-positive ``fps``. The message names the
+        file and the line.
+    """
+    path = Path(path)
+    scale = _scale(units, str(path))
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise InputFormatError(f"{path}: fps must be positive, got {fps}")
+    lines = _read_text(path).splitlines()
+    n_lines = len(lines)
+
+    def where(i: int) -> str:
+        return f"{path}: line {i + 1}"
+
+    def expect_header(i: int, pattern: re.Pattern[str], name: str) -> tuple[int, int]:
+        while i < n_lines and not lines[i].strip():
+            i += 1
+        if i >= n_lines:
+            raise InputFormatError(f"{path}: line {i + 1}: expected '{name}: N', found end of file")
+        m = pattern.match(lines[i])
+        if m is None:
+            raise InputFormatError(f"{where(i)}: expected '{name}: N', got {lines[i].strip()!r}")
+        try:
+            n = int(m.group(1))
+        except ValueError:
+            raise InputFormatError(
+                f"{where(i)}: '{name}' must be a whole number, got {m.group(1)!r}"
+            ) from None
+        if n < 0:
+            raise InputFormatError(f"{where(i)}: '{name}' must not be negative, got {n}")
+        return n, i + 1
+
+    n_models, i = expect_header(0, _HEADER_MODELS, "No of Models")
+    if n_models < 2:
+        raise InputFormatError(
+            f"{where(i - 1)}: need at least 2 models (grasped, environment), got {n_models}"
+        )
+    models: list[Path] = []
+    while len(models) < n_models:
+        if i >= n_lines or not lines[i].strip() or _HEADER_SCENES.match(lines[i]):
+            raise InputFormatError(
+                f"{where(min(i, n_lines - 1))}: expected {n_models} model paths, found "
+                f"{len(models)}"
+            )
+        models.append(_model_path(lines[i], path.parent))
+        i += 1
+    if i < n_lines and lines[i].strip() and not _HEADER_SCENES.match(lines[i]):
+        raise InputFormatError(
+            f"{where(i)}: expected {n_models} model paths, found more: {lines[i].strip()!r}"
+        )
+    n_scenes, i = expect_header(i, _HEADER_SCENES, "No of Scenes")
+
+    # scenes: runs of non-blank lines
+    scenes: list[list[int]] = []
+    current: list[int] = []
+    for j in range(i, n_lines):
+        if lines[j].strip():
+            current.append(j)
+        elif current:
+            scenes.append(current)
+            current = []
+    if current:
+        scenes.append(current)
+    if not scenes:
+        raise InputFormatError(
+            f"{path}: no scenes (empty sequence): a demonstration needs at least one"
+            + (f"; the header announced {n_scenes}" if n_scenes else "")
+        )
+    if len(scenes) != n_scenes:
+        raise InputFormatError(
+            f"{where(scenes[-1][0] if len(scenes) > n_scenes else n_lines - 1)}: expected "
+            f"{n_scenes} scenes ('No of Scenes: {n_scenes}'), found {len(scenes)}"
+        )
+
+    n = len(scenes)
+    x_c = np.zeros((n, n_models, 4, 4))
+    tags = np.zeros((n, n_models), dtype=np.int64)
+    first = np.zeros(n, dtype=np.int64)
+    for k, scene in enumerate(scenes):
+        first[k] = scene[0] + 1
+        if len(scene) != n_models:
+            raise InputFormatError(
+                f"{where(scene[0])}: scene {k + 1} has {len(scene)} pose lines, expected "
+                f"{n_models} (one per model)"
+            )
+        for m, j in enumerate(scene):
+            tags[k, m], x_c[k, m] = _pose_line(lines[j], where(j), scale)
+    x_eg = np.einsum("nij,njk->nik", _invert_all(x_c[:, 1]), x_c[:, 0])
+    rate = 1.0 if fps is None else float(fps)
+    return Demonstration(
+        times=np.arange(n, dtype=np.float64) / rate,
+        X_EG=x_eg,
+        units=units,
+        source=path,
+        grasped_path=models[0],
+        environment_path=models[1],
+        model_paths=tuple(models),
+        X_C=x_c,
+        tags=tags,
+        lines=first,
+        fps=rate,
+    )
+
+
+def _pose_line(line: str, where: str, scale: float) -> tuple[int, FloatArray]:
+    """Parse ``tag x y z ax ay az angle``; return the tag and the pose (metres)."""
+    tokens = line.split()
+    if len(tokens) != 8:
+        raise InputFormatError(
+            f"{where}: expected 8 fields 'tag x y z ax ay az angle', got {len(tokens)}: "
+            f"{line.strip()!r}"
+        )
+    try:
+        tag = int(tokens[0])
+    except ValueError:
+        raise InputFormatError(f"{where}: tag is not an integer: {tokens[0]!r}") from None
+    names = ("x", "y", "z", "ax", "ay", "az", "angle")
+    vals = [_number(t, where, nm) for t, nm in zip(tokens[1:], names, strict=True)]
+    axis = np.array(vals[3:6])
+    angle = vals[6]
+    if float(np.linalg.norm(axis)) < 1e-12 and abs(angle) > 1e-12:
+        raise InputFormatError(f"{where}: rotation axis is zero but the angle is {angle}")
+    x = np.eye(4)
+    x[:3, :3] = matrix_from_axis_angle(axis, angle)
+    x[:3, 3] = np.array(vals[:3]) * scale
+    return tag, x
+
+
+def _invert_all(x: FloatArray) -> FloatArray:
+    out = np.zeros_like(x)
+    out[:, :3, :3] = np.swapaxes(x[:, :3, :3], 1, 2)
+    out[:, :3, 3] = -np.einsum("nji,nj->ni", x[:, :3, :3], x[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# CSV
+# --------------------------------------------------------------------------------------------
+
+
+def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
+    """Read a pose CSV ``t,x,y,z,qw,qx,qy,qz[,extra...]`` (G in E; see the module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    units : {"mm", "cm", "m", "in"}
+        Length unit of ``x, y, z`` in the file.
+
+    Returns
+    -------
+    Demonstration
+        Times (s) as written, ``X_EG`` in metres, extra columns in ``extra``.
+
+    Raises
+    ------
+    InputFormatError
+        Missing file, a header not beginning with ``t,x,y,z,qw,qx,qy,qz`` (or with repeated
+        names), a row with a different number of fields than the first, fewer than 8
+        columns, a malformed or non-finite number (extra columns may hold ``nan``), a zero
+        quaternion, a time stamp not greater than the previous one, or no rows. The message
+        names the file and the line.
+    """
+    path = Path(path)
+    scale = _scale(units, str(path))
+    text = _read_text(path)
+    rows: list[tuple[int, list[str]]] = []
+    for lineno, fields in enumerate(csv.reader(io.StringIO(text)), start=1):
+        if not fields or all(not f.strip() for f in fields) or fields[0].lstrip().startswith("#"):
+            continue
+        rows.append((lineno, [f.strip() for f in fields]))
+    if not rows:
+        raise InputFormatError(f"{path}: no rows (empty sequence)")
+    names: list[str]
+    head_line, head = rows[0]
+    try:
+        float(head[0])
+        has_header = False
+    except ValueError:
+        has_header = True
+    if has_header:
+        names = [h.lower() for h in head]
+        if tuple(names[:8]) != CSV_COLUMNS:
+            raise InputFormatError(
+                f"{path}: line {head_line}: header must begin with {','.join(CSV_COLUMNS)}, "
+                f"got {','.join(head)}"
+            )
+        names = names[:8] + head[8:]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise InputFormatError(f"{path}: line {head_line}: repeated column names {sorted(dup)}")
+        rows = rows[1:]
+        if not rows:
+            raise InputFormatError(f"{path}: header only, no rows (empty sequence)")
+    else:
+        if len(head) < 8:
+            raise InputFormatError(
+                f"{path}: line {head_line}: expected at least 8 columns "
+                f"{','.join(CSV_COLUMNS)}, got {len(head)}"
+            )
+        names = [*CSV_COLUMNS, *(f"col{j}" for j in range(8, len(head)))]
+    width = len(names)
+    n = len(rows)
+    times = np.zeros(n)
+    x_eg = np.zeros((n, 4, 4))
+    extra = np.zeros((n, width - 8))
+    lines = np.zeros(n, dtype=np.int64)
+    for k, (lineno, fields) in enumerate(rows):
+        where = f"{path}: line {lineno}"
+        if len(fields) != width:
+            raise InputFormatError(f"{where}: expected {width} fields, got {len(fields)}")
+        vals = [_number(f, where, nm) for f, nm in zip(fields[:8], CSV_COLUMNS, strict=True)]
+        for j in range(8, width):
+            try:
+                extra[k, j - 8] = float(fields[j])
+            except ValueError:
+                raise InputFormatError(
+                    f"{where}: column {names[j]!r} is not a number: {fields[j]!r}"
+                ) from None
+        q = np.array(vals[4:8])
+        if float(np.linalg.norm(q)) < 1e-9:
+            raise InputFormatError(f"{where}: quaternion (qw, qx, qy, qz) is zero")
+        if k and not vals[0] > times[k - 1]:
+            raise InputFormatError(
+                f"{where}: time stamps must strictly increase: t = {vals[0]} after {times[k - 1]}"
+            )
+        times[k] = vals[0]
+        x_eg[k] = np.eye(4)
+        x_eg[k, :3, :3] = matrix_from_quaternion(q)
+        x_eg[k, :3, 3] = np.array(vals[1:4]) * scale
+        lines[k] = lineno
+    return Demonstration(
+        times=times,
+        X_EG=x_eg,
+        units=units,
+        source=path,
+        extra={names[j]: extra[:, j - 8].copy() for j in range(8, width)},
+        lines=lines,
+    )
+
+
+def write_pose_csv(
+    path: str | Path,
+    times: npt.ArrayLike,
+    X_EG: npt.ArrayLike,
+    *,
+    units: str,
+    extra: Mapping[str, npt.ArrayLike] | None = None,
+) -> Path:
+    """Write poses of G in E as a pose CSV with a header (read back by :func:`read_pose_csv`).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (overwritten).
+    times : array_like, shape (N,), seconds
+        Strictly increasing time stamps.
+    X_EG : array_like, shape (N, 4, 4), metres
+        Poses of G in E.
+    units : {"mm", "cm", "m", "in"}
+        Length unit to write positions in.
+    extra : mapping of str to array_like, shape (N,), optional
+        Further columns, written after the pose in the mapping's order.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    InputFormatError
+        Mismatched shapes, no frames, non-finite values, non-increasing times, a rotation part
+        that is not a rotation, or a bad extra column name (empty, a pose column, or containing
+        a comma, quote or line break).
+
+    Notes
+    -----
+    Numbers are written with ``repr`` (shortest round-trip form); quaternions with
+    ``qw >= 0``. Positions round-trip exactly up to the units conversion, rotations to
+    about 1e-15.
+    """
+    path = Path(path)
+    scale = _scale(units, str(path))
+    t = np.asarray(times, dtype=np.float64)
+    x = np.asarray(X_EG, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] == 0:
+        raise InputFormatError(f"{path}: times must have shape (N,) with N > 0, got {t.shape}")
+    n = t.shape[0]
+    if x.shape != (n, 4, 4):
+        raise InputFormatError(f"{path}: X_EG must have shape ({n}, 4, 4), got {x.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(x))):
+        raise InputFormatError(f"{path}: times and X_EG must be finite")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputFormatError(
+            f"{path}: times must strictly increase: frame {k} has t = {t[k]} after {t[k - 1]}"
+        )
+    r = x[:, :3, :3]
+    err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(r)
+    bad = np.flatnonzero((err > 1e-6) | (det <= 0))
+    if bad.size:
+        raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
+    cols: list[tuple[str, FloatArray]] = []
+    for name, values in (extra or {}).items():
+        if not name or name.lower() in CSV_COLUMNS or any(c in name for c in ',"\r\n'):
+            raise InputFormatError(f"{path}: bad extra column name {name!r}")
+        arr = np.asarray(values, dtype=np.float64)
+        if arr.shape != (n,):
+            raise InputFormatError(
+                f"{path}: extra column {name!r} must have shape ({n},), got {arr.shape}"
+            )
+        cols.append((name, arr))
+    out = [",".join([*CSV_COLUMNS, *(c for c, _ in cols)])]
+    for k in range(n):
+        q = quaternion_from_matrix(r[k])
+        p = x[k, :3, 3] / scale
+        vals = [t[k], *p, *q, *(a[k] for _, a in cols)]
+        out.append(",".join(repr(float(v)) for v in vals))
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# Any demonstration file
+# --------------------------------------------------------------------------------------------
+
+
+def load_demonstration(
+    path: str | Path,
+    *,
+    units: str | None = None,
+    grasped: str | Path | None = None,
+    environment: str | Path | None = None,
+    fps: float | None = None,
+) -> Demonstration:
+    """Read a demonstration from a ``.pose.list`` or a pose CSV, chosen by the file name.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``*.list`` (``.pose.list``) or ``*.csv``.
+    units : {"mm", "cm", "m", "in"}, optional
+        Length unit of the file; :data:`DEFAULT_UNITS` (mm) if None.
+    grasped, environment : str or Path, optional
+        Model files overriding those the file names (used as given).
+    fps : float, optional
+        Frame rate for a ``.pose.list`` (see :func:`read_pose_list`); ignored for CSV.
+
+    Returns
+    -------
+    Demonstration
+
+    Raises
+    ------
+    InputFormatError
+        An unknown suffix, or any error of the reader.
+    """
+    path = Path(path)
+    u = DEFAULT_UNITS if units is None else units
+    suffix = path.suffix.lower()
+    if suffix == ".list":
+        dem = read_pose_list(path, units=u, fps=fps)
+    elif suffix == ".csv":
+        dem = read_pose_csv(path, units=u)
+    else:
+        raise InputFormatError(
+            f"{path}: unknown demonstration format {suffix!r}; expected .pose.list or .csv"
+        )
+    if grasped is None and environment is None:
+        return dem
+    return replace(
+        dem,
+        grasped_path=dem.grasped_path if grasped is None else Path(grasped),
+        environment_path=dem.environment_path if environment is None else Path(environment),
+    )

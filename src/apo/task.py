@@ -1,0 +1,681 @@
+"""The recognised task: contact states, transitions and sub-skills, and its JSON form.
+
+A :class:`TaskModel` is what :func:`apo.recognition.recognize` returns and what
+``task.json`` stores (schema ``"apo.task/1"``, ``docs/task-json.md``). Inside, everything is
+in SI units (metres) in the environment frame; :func:`task_to_dict` converts lengths to the
+task's ``units`` and :func:`task_from_dict` converts them back, validating every field. No
+file I/O here: the command line writes the dictionary with :mod:`json`.
+
+Quaternions are ``(qw, qx, qy, qz)``; poses ``X_EG`` are 4x4 matrices of the grasped object
+G in the environment frame E (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import InputFormatError
+from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "KINDS",
+    "SCHEMA",
+    "SUBSKILL_KINDS",
+    "UNITS",
+    "Element",
+    "ModelRef",
+    "Rejected",
+    "State",
+    "SubSkill",
+    "TaskModel",
+    "Transition",
+    "state_letters",
+    "task_from_dict",
+    "task_to_dict",
+]
+
+SCHEMA = "apo.task/1"
+"""Schema identifier written in and required from ``task.json``."""
+
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+"""Length units a task may be written in, and their size in metres."""
+
+KINDS = ("VF", "FV", "EE", "VE", "EV", "VV")
+"""Contact element kinds (grasped feature first)."""
+
+SUBSKILL_KINDS = ("push_to", "release", "slide")
+"""Sub-skill kinds (paper section 3.5)."""
+
+DOF_KINDS = ("M", "D", "C", "SM", "SD", "SC")
+"""DOF kinds in a DOF transition: maintaining, detaching, constraining, singular variants."""
+
+SPACES = ("translation", "rotation")
+
+Space = Literal["translation", "rotation"]
+Feature = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class Element:
+    """One contact element of a state (environment frame, metres).
+
+    Attributes
+    ----------
+    kind : str
+        One of ``KINDS``.
+    grasped, environment : tuple of (str, int)
+        Feature ids ``("v" | "e" | "f", index)`` in the two models.
+    point : ndarray, shape (3,)
+        Contact point, metres, environment frame.
+    normals : ndarray, shape (M, 3)
+        Unit separating normals, from the environment towards the grasped object.
+    """
+
+    kind: str
+    grasped: Feature
+    environment: Feature
+    point: FloatArray
+    normals: FloatArray
+
+    @property
+    def singular(self) -> bool:
+        """True if the element has more than one separating normal."""
+        return int(self.normals.shape[0]) > 1
+
+
+@dataclass(frozen=True)
+class State:
+    """One contact state of the demonstration (a run of frames with the same contacts).
+
+    Attributes
+    ----------
+    id : str
+        Letter(s) ``"A"``, ``"B"``, ... in order of appearance (:func:`state_letters`).
+    frames : tuple of (int, int)
+        First and last frame index (inclusive).
+    times : tuple of (float, float)
+        Time stamps of the first and last frame, seconds.
+    singular : bool
+        True if any element is singular.
+    fig25 : tuple of 8 int
+        The paper's eight numbers (``apo.dof.DofResult.fig25``).
+    six : dict
+        ``{"translation": (M, D, C, SM, SD, SC), "rotation": (...)}``.
+    elements : tuple of Element
+    X_EG : ndarray, shape (4, 4)
+        Representative pose (metres), corrected so that the contacts hold.
+    pose_frame : int or None
+        Frame the representative pose was corrected from (None: no frame converged and
+        ``X_EG`` is the observed pose of the state's first frame).
+    pose_converged : bool
+        True if the correction of ``pose_frame`` converged.
+    same_as : str or None
+        Id of an earlier state with the same contact elements, if any.
+    """
+
+    id: str
+    frames: tuple[int, int]
+    times: tuple[float, float]
+    singular: bool
+    fig25: tuple[int, int, int, int, int, int, int, int]
+    six: Mapping[str, tuple[int, int, int, int, int, int]]
+    elements: tuple[Element, ...]
+    X_EG: FloatArray
+    pose_frame: int | None = None
+    pose_converged: bool = True
+    same_as: str | None = None
+
+
+@dataclass(frozen=True)
+class SubSkill:
+    """A sub-skill assigned to a transition (paper section 3.5).
+
+    Attributes
+    ----------
+    kind : str
+        ``"push_to"``, ``"release"`` or ``"slide"``.
+    space : str
+        ``"translation"`` or ``"rotation"``.
+    type : str or None
+        ``"I"`` or ``"II"`` for a rotational push-to, else None.
+    direction : ndarray, shape (3,)
+        Unit direction (translation) or rotation axis (rotation), environment frame; zeros
+        when the transition does not fix one.
+    """
+
+    kind: str
+    space: str
+    type: str | None
+    direction: FloatArray
+
+
+@dataclass(frozen=True)
+class Transition:
+    """A transition between consecutive states.
+
+    Attributes
+    ----------
+    from_id, to_id : str
+        State ids.
+    frame : int
+        First frame of the ``to`` state.
+    dof_transitions : dict
+        ``{"translation": ((X, Y), ...), "rotation": (...)}``, X, Y in ``DOF_KINDS``.
+    subskills : tuple of SubSkill
+    critical : bool
+        True if the transition contains SM -> C or SD -> C.
+    direct : bool
+        True if it passes the direct-transition test (always, after the repair, unless the
+        demonstration itself has an unavoidable jump).
+    """
+
+    from_id: str
+    to_id: str
+    frame: int
+    dof_transitions: Mapping[str, tuple[tuple[str, str], ...]]
+    subskills: tuple[SubSkill, ...]
+    critical: bool
+    direct: bool = True
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """An observed run of frames the repair replaced.
+
+    Attributes
+    ----------
+    frames : tuple of (int, int)
+        First and last frame of the run (inclusive).
+    elements : tuple of str
+        The observed contact elements, as ``"VF v3-f7"`` labels.
+    replaced_by : tuple of str
+        Ids of the states the frames were assigned to instead.
+    reason : str
+        Why (infeasible transition, failed correction, or costlier than the alternative).
+    """
+
+    frames: tuple[int, int]
+    elements: tuple[str, ...]
+    replaced_by: tuple[str, ...]
+    reason: str
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A model file: path as written (relative to ``task.json`` or absolute) and its hash.
+
+    Attributes
+    ----------
+    path : str
+    sha256 : str or None
+        Hex SHA-256 of the file content (None for built-in models without a file).
+    name : str
+    """
+
+    path: str
+    sha256: str | None
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class TaskModel:
+    """The recognised demonstration.
+
+    Attributes
+    ----------
+    units : str
+        Length unit of the JSON form (``UNITS``); the model itself is in metres.
+    grasped, environment : ModelRef
+    states : tuple of State
+    transitions : tuple of Transition
+        ``len(states) - 1`` of them, in order.
+    rejected : tuple of Rejected
+    n_frames : int
+    frame : str
+        Frame of every point and direction: ``"environment"``.
+    source : str
+        Where the demonstration came from (file name or ``"apo demo"``).
+    threshold : float
+        Contact distance threshold used, metres.
+    """
+
+    units: str
+    grasped: ModelRef
+    environment: ModelRef
+    states: tuple[State, ...]
+    transitions: tuple[Transition, ...]
+    rejected: tuple[Rejected, ...] = ()
+    n_frames: int = 0
+    frame: str = "environment"
+    source: str = ""
+    threshold: float = 0.0
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def state(self, state_id: str) -> State:
+        """Return the state with id ``state_id``.
+
+        Raises
+        ------
+        KeyError
+            If there is none.
+        """
+        for s in self.states:
+            if s.id == state_id:
+                return s
+        raise KeyError(state_id)
+
+    def subskill_sequence(self) -> list[tuple[str, str, str | None]]:
+        """Return the sub-skills of all transitions in order as ``(kind, space, type)``."""
+        return [(k.kind, k.space, k.type) for t in self.transitions for k in t.subskills]
+
+
+def state_letters(n: int) -> list[str]:
+    """Return ``n`` state ids: ``A .. Z``, then ``AA, AB, ...`` (spreadsheet columns).
+
+    Examples
+    --------
+    >>> state_letters(3), state_letters(28)[-2:]
+    (['A', 'B', 'C'], ['AA', 'AB'])
+    """
+    out: list[str] = []
+    for i in range(n):
+        s, k = "", i + 1
+        while k > 0:
+            k, r = divmod(k - 1, 26)
+            s = chr(ord("A") + r) + s
+        out.append(s)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# To JSON
+# --------------------------------------------------------------------------------------------
+
+
+def _r(x: float, nd: int = 9) -> float:
+    return float(round(float(x), nd))
+
+
+def _vec(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
+    return [_r(v * scale) for v in np.asarray(a, dtype=float).ravel()]
+
+
+def task_to_dict(task: TaskModel) -> dict[str, Any]:
+    """Return the JSON form of ``task`` (schema ``"apo.task/1"``, lengths in ``task.units``).
+
+    Parameters
+    ----------
+    task : TaskModel
+
+    Returns
+    -------
+    dict
+        Plain lists, strings, numbers and booleans, ready for :func:`json.dump`.
+    """
+    if task.units not in UNITS:
+        raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
+    k = 1.0 / UNITS[task.units]
+    states: list[dict[str, Any]] = []
+    for s in task.states:
+        p, q = position_quaternion_from_pose(s.X_EG)
+        states.append(
+            {
+                "id": s.id,
+                "frames": [int(s.frames[0]), int(s.frames[1])],
+                "times": [_r(s.times[0]), _r(s.times[1])],
+                "singular": bool(s.singular),
+                "fig25": [int(v) for v in s.fig25],
+                "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
+                "elements": [
+                    {
+                        "kind": e.kind,
+                        "grasped": [e.grasped[0], int(e.grasped[1])],
+                        "environment": [e.environment[0], int(e.environment[1])],
+                        "point": _vec(e.point, k),
+                        "normals": [_vec(n) for n in np.asarray(e.normals).reshape(-1, 3)],
+                    }
+                    for e in s.elements
+                ],
+                "pose": {"position": _vec(p, k), "quaternion": _vec(q)},
+                "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
+                "pose_converged": bool(s.pose_converged),
+                "same_as": s.same_as,
+            }
+        )
+    transitions = [
+        {
+            "from": t.from_id,
+            "to": t.to_id,
+            "frame": int(t.frame),
+            "dof_transitions": {
+                sp: [[a, b] for a, b in t.dof_transitions.get(sp, ())] for sp in SPACES
+            },
+            "subskills": [
+                {"kind": u.kind, "space": u.space, "type": u.type, "direction": _vec(u.direction)}
+                for u in t.subskills
+            ],
+            "critical": bool(t.critical),
+            "direct": bool(t.direct),
+        }
+        for t in task.transitions
+    ]
+    rejected = [
+        {
+            "frames": [int(r.frames[0]), int(r.frames[1])],
+            "elements": list(r.elements),
+            "replaced_by": list(r.replaced_by),
+            "reason": r.reason,
+        }
+        for r in task.rejected
+    ]
+    return {
+        "schema": SCHEMA,
+        "units": task.units,
+        "frame": task.frame,
+        "source": task.source,
+        "n_frames": int(task.n_frames),
+        "threshold": _r(task.threshold * k),
+        "models": {
+            "grasped": _model_to_dict(task.grasped),
+            "environment": _model_to_dict(task.environment),
+        },
+        "states": states,
+        "transitions": transitions,
+        "rejected": rejected,
+        **({"extra": dict(task.extra)} if task.extra else {}),
+    }
+
+
+def _model_to_dict(m: ModelRef) -> dict[str, Any]:
+    return {"path": m.path, "sha256": m.sha256, "name": m.name}
+
+
+# --------------------------------------------------------------------------------------------
+# From JSON, with validation
+# --------------------------------------------------------------------------------------------
+
+
+class _Reader:
+    """Typed accessors that raise :class:`InputFormatError` naming the source and field."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source or "task"
+
+    def fail(self, where: str, what: str) -> InputFormatError:
+        return InputFormatError(f"{self.source}: {where}: {what}")
+
+    def obj(self, d: Any, where: str) -> Mapping[str, Any]:
+        if not isinstance(d, Mapping):
+            raise self.fail(where, f"expected an object, got {type(d).__name__}")
+        return d
+
+    def get(self, d: Mapping[str, Any], key: str, where: str) -> Any:
+        if key not in d:
+            raise self.fail(where, f"missing field {key!r}")
+        return d[key]
+
+    def lst(self, v: Any, where: str, n: int | None = None) -> Sequence[Any]:
+        if not isinstance(v, list | tuple):
+            raise self.fail(where, f"expected a list, got {type(v).__name__}")
+        if n is not None and len(v) != n:
+            raise self.fail(where, f"expected {n} entries, got {len(v)}")
+        return v
+
+    def string(self, v: Any, where: str, choices: Sequence[str] | None = None) -> str:
+        if not isinstance(v, str):
+            raise self.fail(where, f"expected a string, got {type(v).__name__}")
+        if choices is not None and v not in choices:
+            raise self.fail(where, f"expected one of {list(choices)}, got {v!r}")
+        return v
+
+    def integer(self, v: Any, where: str) -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(where, f"expected an integer, got {v!r}")
+        return v
+
+    def boolean(self, v: Any, where: str) -> bool:
+        if not isinstance(v, bool):
+            raise self.fail(where, f"expected true or false, got {v!r}")
+        return v
+
+    def number(self, v: Any, where: str) -> float:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.fail(where, f"expected a finite number, got {v!r}")
+        return float(v)
+
+    def vector(self, v: Any, where: str, n: int) -> FloatArray:
+        items = self.lst(v, where, n)
+        return np.array([self.number(x, f"{where}[{i}]") for i, x in enumerate(items)])
+
+    def feature(self, v: Any, where: str) -> Feature:
+        items = self.lst(v, where, 2)
+        kind = self.string(items[0], f"{where}[0]", ("v", "e", "f"))
+        idx = self.integer(items[1], f"{where}[1]")
+        if idx < 0:
+            raise self.fail(where, f"negative feature index {idx}")
+        return (kind, idx)
+
+
+def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
+    """Validate the JSON form of a task and return the :class:`TaskModel` (metres).
+
+    Parameters
+    ----------
+    data : dict
+        As produced by :func:`task_to_dict` (e.g. ``json.load`` of a ``task.json``).
+    source : str, optional
+        File name used in error messages.
+
+    Returns
+    -------
+    TaskModel
+
+    Raises
+    ------
+    InputFormatError
+        Wrong or missing schema, missing or mistyped fields, unknown units, kinds or state
+        ids, a quaternion that is not unit length, frames out of order. The message names
+        ``source`` and the field (e.g. ``states[2].fig25``).
+    """
+    rd = _Reader(source)
+    d = rd.obj(data, "top level")
+    schema = d.get("schema")
+    if schema != SCHEMA:
+        raise rd.fail("schema", f"expected {SCHEMA!r}, got {schema!r}")
+    units = rd.string(rd.get(d, "units", "top level"), "units", tuple(UNITS))
+    k = UNITS[units]
+    frame = rd.string(rd.get(d, "frame", "top level"), "frame", ("environment",))
+    models = rd.obj(rd.get(d, "models", "top level"), "models")
+    refs = [
+        _model_from_dict(rd, rd.get(models, r, "models"), f"models.{r}")
+        for r in ("grasped", "environment")
+    ]
+
+    states: list[State] = []
+    ids: set[str] = set()
+    prev_last = -1
+    for i, sd_ in enumerate(rd.lst(rd.get(d, "states", "top level"), "states")):
+        w = f"states[{i}]"
+        sd = rd.obj(sd_, w)
+        sid = rd.string(rd.get(sd, "id", w), f"{w}.id")
+        if not sid or sid in ids:
+            raise rd.fail(f"{w}.id", f"empty or duplicate state id {sid!r}")
+        ids.add(sid)
+        fr = rd.lst(rd.get(sd, "frames", w), f"{w}.frames", 2)
+        f0, f1 = rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")
+        if not 0 <= f0 <= f1 or f0 <= prev_last:
+            raise rd.fail(f"{w}.frames", f"frames [{f0}, {f1}] out of order")
+        prev_last = f1
+        tv = rd.vector(sd.get("times", [0.0, 0.0]), f"{w}.times", 2)
+        fig = rd.lst(rd.get(sd, "fig25", w), f"{w}.fig25", 8)
+        fig25 = tuple(rd.integer(x, f"{w}.fig25[{j}]") for j, x in enumerate(fig))
+        if any(not 0 <= v <= 3 for v in fig25):
+            raise rd.fail(f"{w}.fig25", f"entries must be in 0..3, got {list(fig25)}")
+        six_d = rd.obj(sd.get("six", {}), f"{w}.six")
+        six: dict[str, tuple[int, int, int, int, int, int]] = {}
+        for sp in SPACES:
+            if sp in six_d:
+                vals = rd.lst(six_d[sp], f"{w}.six.{sp}", 6)
+                tup = tuple(rd.integer(x, f"{w}.six.{sp}[{j}]") for j, x in enumerate(vals))
+                if sum(tup) != 3 or min(tup) < 0:
+                    raise rd.fail(
+                        f"{w}.six.{sp}",
+                        f"must be 6 non-negative ints summing to 3, got {list(tup)}",
+                    )
+                six[sp] = cast("tuple[int, int, int, int, int, int]", tup)
+        elements: list[Element] = []
+        for j, ed_ in enumerate(rd.lst(rd.get(sd, "elements", w), f"{w}.elements")):
+            we = f"{w}.elements[{j}]"
+            ed = rd.obj(ed_, we)
+            normals_l = rd.lst(rd.get(ed, "normals", we), f"{we}.normals")
+            if not normals_l:
+                raise rd.fail(f"{we}.normals", "expected at least one normal")
+            normals = np.array(
+                [rd.vector(n, f"{we}.normals[{m}]", 3) for m, n in enumerate(normals_l)]
+            )
+            if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > 1e-4):
+                raise rd.fail(f"{we}.normals", "normals must be unit vectors")
+            elements.append(
+                Element(
+                    kind=rd.string(rd.get(ed, "kind", we), f"{we}.kind", KINDS),
+                    grasped=rd.feature(ed.get("grasped", ["v", 0]), f"{we}.grasped"),
+                    environment=rd.feature(ed.get("environment", ["v", 0]), f"{we}.environment"),
+                    point=rd.vector(rd.get(ed, "point", we), f"{we}.point", 3) * k,
+                    normals=normals,
+                )
+            )
+        singular = rd.boolean(rd.get(sd, "singular", w), f"{w}.singular")
+        if singular != any(e.singular for e in elements):
+            raise rd.fail(f"{w}.singular", f"{singular} disagrees with the elements' normals")
+        pd = rd.obj(rd.get(sd, "pose", w), f"{w}.pose")
+        pos = rd.vector(rd.get(pd, "position", f"{w}.pose"), f"{w}.pose.position", 3) * k
+        quat = rd.vector(rd.get(pd, "quaternion", f"{w}.pose"), f"{w}.pose.quaternion", 4)
+        if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-6:
+            raise rd.fail(f"{w}.pose.quaternion", f"not a unit quaternion: {quat.tolist()}")
+        pf = sd.get("pose_frame")
+        same_as = sd.get("same_as")
+        if same_as is not None and rd.string(same_as, f"{w}.same_as") not in ids:
+            raise rd.fail(f"{w}.same_as", f"unknown earlier state {same_as!r}")
+        states.append(
+            State(
+                id=sid,
+                frames=(f0, f1),
+                times=(float(tv[0]), float(tv[1])),
+                singular=singular,
+                fig25=cast("tuple[int, int, int, int, int, int, int, int]", fig25),
+                six=six,
+                elements=tuple(elements),
+                X_EG=pose_from_position_quaternion(pos, quat),
+                pose_frame=None if pf is None else rd.integer(pf, f"{w}.pose_frame"),
+                pose_converged=rd.boolean(sd.get("pose_converged", True), f"{w}.pose_converged"),
+                same_as=same_as,
+            )
+        )
+
+    transitions: list[Transition] = []
+    tl = rd.lst(rd.get(d, "transitions", "top level"), "transitions")
+    if len(tl) != max(len(states) - 1, 0):
+        raise rd.fail(
+            "transitions",
+            f"expected {max(len(states) - 1, 0)} (one between each pair of consecutive "
+            f"states), got {len(tl)}",
+        )
+    for i, td_ in enumerate(tl):
+        w = f"transitions[{i}]"
+        td = rd.obj(td_, w)
+        a = rd.string(rd.get(td, "from", w), f"{w}.from")
+        b = rd.string(rd.get(td, "to", w), f"{w}.to")
+        if (a, b) != (states[i].id, states[i + 1].id):
+            raise rd.fail(w, f"expected {states[i].id} -> {states[i + 1].id}, got {a} -> {b}")
+        dd = rd.obj(rd.get(td, "dof_transitions", w), f"{w}.dof_transitions")
+        dof_t: dict[str, tuple[tuple[str, str], ...]] = {}
+        for sp in SPACES:
+            pairs = rd.lst(dd.get(sp, []), f"{w}.dof_transitions.{sp}")
+            out_pairs: list[tuple[str, str]] = []
+            for j, pr in enumerate(pairs):
+                wp = f"{w}.dof_transitions.{sp}[{j}]"
+                pl = rd.lst(pr, wp, 2)
+                out_pairs.append((rd.string(pl[0], wp, DOF_KINDS), rd.string(pl[1], wp, DOF_KINDS)))
+            dof_t[sp] = tuple(out_pairs)
+        subs: list[SubSkill] = []
+        for j, ud_ in enumerate(rd.lst(rd.get(td, "subskills", w), f"{w}.subskills")):
+            wu = f"{w}.subskills[{j}]"
+            ud = rd.obj(ud_, wu)
+            typ = ud.get("type")
+            subs.append(
+                SubSkill(
+                    kind=rd.string(rd.get(ud, "kind", wu), f"{wu}.kind", SUBSKILL_KINDS),
+                    space=rd.string(rd.get(ud, "space", wu), f"{wu}.space", SPACES),
+                    type=None if typ is None else rd.string(typ, f"{wu}.type", ("I", "II")),
+                    direction=rd.vector(ud.get("direction", [0, 0, 0]), f"{wu}.direction", 3),
+                )
+            )
+        transitions.append(
+            Transition(
+                from_id=a,
+                to_id=b,
+                frame=rd.integer(td.get("frame", states[i + 1].frames[0]), f"{w}.frame"),
+                dof_transitions=dof_t,
+                subskills=tuple(subs),
+                critical=rd.boolean(rd.get(td, "critical", w), f"{w}.critical"),
+                direct=rd.boolean(td.get("direct", True), f"{w}.direct"),
+            )
+        )
+
+    rejected: list[Rejected] = []
+    for i, rj_ in enumerate(rd.lst(d.get("rejected", []), "rejected")):
+        w = f"rejected[{i}]"
+        rj = rd.obj(rj_, w)
+        fr = rd.lst(rd.get(rj, "frames", w), f"{w}.frames", 2)
+        rejected.append(
+            Rejected(
+                frames=(rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")),
+                elements=tuple(
+                    rd.string(x, f"{w}.elements")
+                    for x in rd.lst(rj.get("elements", []), f"{w}.elements")
+                ),
+                replaced_by=tuple(
+                    rd.string(x, f"{w}.replaced_by", tuple(ids))
+                    for x in rd.lst(rj.get("replaced_by", []), f"{w}.replaced_by")
+                ),
+                reason=rd.string(rj.get("reason", ""), f"{w}.reason"),
+            )
+        )
+    n_frames = rd.integer(d.get("n_frames", states[-1].frames[1] + 1 if states else 0), "n_frames")
+    if states and states[-1].frames[1] >= n_frames:
+        raise rd.fail(
+            "n_frames", f"{n_frames} but the last state ends at frame {states[-1].frames[1]}"
+        )
+    extra = d.get("extra", {})
+    return TaskModel(
+        units=units,
+        grasped=refs[0],
+        environment=refs[1],
+        states=tuple(states),
+        transitions=tuple(transitions),
+        rejected=tuple(rejected),
+        n_frames=n_frames,
+        frame=frame,
+        source=rd.string(d.get("source", ""), "source"),
+        threshold=rd.number(d.get("threshold", 0.0), "threshold") * k,
+        extra=dict(rd.obj(extra, "extra")),
+    )
+
+
+def _model_from_dict(rd: _Reader, v: Any, where: str) -> ModelRef:
+    m = rd.obj(v, where)
+    path = rd.string(rd.get(m, "path", where), f"{where}.path")
+    h = m.get("sha256")
+    if h is not None:
+        h = rd.string(h, f"{where}.sha256")
+        if len(h) != 64 or any(c not in "0123456789abcdef" for c in h):
+            raise rd.fail(f"{where}.sha256", "expected 64 lowercase hex digits")
+    return ModelRef(path=path, sha256=h, name=rd.string(m.get("name", ""), f"{where}.name"))

@@ -1,0 +1,184 @@
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from apo.cli import main
+from apo.cli.analyze import atomic_path, model_ref, sha256_of
+
+
+def test_missing_demo_file_is_a_clear_error(tmp_path, capsys):
+    code = main(["analyze", str(tmp_path / "nope.pose.list"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "nope.pose.list: file not found" in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_atomic_path_leaves_no_half_written_file(tmp_path):
+    target = tmp_path / "task.json"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("boom")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["task.json"]
+    with atomic_path(target) as tmp:
+        tmp.write_text("new")
+    assert target.read_text() == "new"
+
+
+def test_model_ref_is_relative_to_the_output_folder_and_hashes_content(tmp_path):
+    model = tmp_path / "models" / "peg.stl"
+    model.parent.mkdir()
+    model.write_bytes(b"solid x\nendsolid x\n")
+    ref = model_ref(model, tmp_path / "out")
+    assert ref.path == "../models/peg.stl"
+    assert ref.sha256 == hashlib.sha256(b"solid x\nendsolid x\n").hexdigest()
+    assert sha256_of(model) == ref.sha256
+    assert ref.name == "peg.stl"
+
+
+def test_demo_writes_models_that_load_back(tmp_path):
+    from apo.cli.demo import _write_stl
+    from apo.io.meshes import load_polyhedron
+    from apo.shapes import t_peg
+
+    peg = t_peg()
+    _write_stl(peg, tmp_path / "peg.stl", 1000.0)
+    back = load_polyhedron(tmp_path / "peg.stl", units="mm")
+    assert (len(back.vertices), len(back.edges), len(back.faces)) == (16, 24, 10)
+    np.testing.assert_allclose(
+        np.sort(back.vertices, axis=0), np.sort(peg.vertices, axis=0), atol=1e-7
+    )
+
+
+def test_help_lists_analyze_and_demo(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "analyze" in out and "demo" in out
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end on the first author's demonstration (skipped when the data is absent)
+# ---------------------------------------------------------------------------------------------
+
+
+def _subskills(task):
+    return [[(k.kind, k.space) for k in t.subskills] for t in task.transitions]
+
+
+@pytest.mark.realdata
+def test_real_demonstration_end_to_end(real_data_dir, tmp_path, capsys):
+    from apo.task import task_from_dict
+
+    for mod in ("apo.io.poses", "apo.transitions"):
+        pytest.importorskip(mod, reason=f"{mod} not available yet")
+
+    out = tmp_path / "out"
+    code = main(["analyze", str(real_data_dir / "peg_in_hole.pose.list"), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "state" in captured.out and "(1) A->B" in captured.out
+    data = json.loads((out / "task.json").read_text())
+    assert (out / "dof.png").read_bytes()[:4] == b"\x89PNG"
+    task = task_from_dict(data, source="task.json")
+    assert data["units"] == "mm" and data["n_frames"] == 41
+    assert data["models"]["grasped"]["sha256"] == sha256_of(real_data_dir / "peg.step")
+    assert (out / data["models"]["environment"]["path"]).resolve() == (
+        real_data_dir / "hole.step"
+    ).resolve()
+    states, trans = task.states, task.transitions
+    # Section 5.1.1: the peg starts free, the first contact is a push-to (translation and a
+    # rotation of type I), slides follow, a critical transition comes before the peg
+    # enters, and the peg ends seated (every translation constrained but the way out).
+    assert states[0].elements == () and states[0].fig25[:6] == (3, 0, 0, 3, 0, 0)
+    first = {(k.kind, k.space) for k in trans[0].subskills}
+    assert ("push_to", "translation") in first
+    assert any(k.kind == "slide" for t in trans for k in t.subskills)
+    critical = [i for i, t in enumerate(trans) if t.critical]
+    assert critical, "no critical transition"
+    last = states[-1]
+    # Seated in the U-slot (through along z): x constrained, +y the way out, z free;
+    # rotation about z blocked by the slot walls.
+    assert not last.singular
+    assert last.fig25[2] >= 1 and last.fig25[5] >= 2
+    assert any(k.kind == "push_to" for k in trans[-1].subskills)
+    assert all(t.direct for t in trans)
+    assert all(s.pose_converged for s in states if s.elements)
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: a clear error naming the file, exit code 2, no traceback, no task.json
+# ---------------------------------------------------------------------------------------------
+
+
+def _pose_list_text(real_data_dir):
+    return (real_data_dir / "peg_in_hole.pose.list").read_text()
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    ("mutate", "match"),
+    [
+        (lambda s: s.replace("No of Scenes: 41", "No of Scenes: 0").split("\n2 ")[0], "empty|no"),
+        (lambda s: s.replace("-27.240726", "nan", 1), "not finite|nan|NaN"),
+        (lambda s: s.replace("-27.240726", "abc", 1), "abc|number|line"),
+        (lambda s: "garbage\n", "garbage|line 1|No of Models"),
+    ],
+)
+def test_bad_pose_list_exits_2_without_output(real_data_dir, tmp_path, capsys, mutate, match):
+    import re
+    import shutil
+
+    pytest.importorskip("apo.io.poses", reason="apo.io.poses not available yet")
+    for model in ("peg.step", "hole.step"):
+        shutil.copy(real_data_dir / model, tmp_path / model)
+    demo = tmp_path / "bad.pose.list"
+    demo.write_text(mutate(_pose_list_text(real_data_dir)))
+    out = tmp_path / "out"
+    code = main(["analyze", str(demo), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "bad.pose.list" in err and re.search(match, err), err
+    assert "Traceback" not in err
+    assert not (out / "task.json").exists()
+
+
+def test_demo_end_to_end(tmp_path, capsys):
+    from apo.task import task_from_dict
+
+    for mod in ("apo.synthetic", "apo.transitions"):
+        pytest.importorskip(mod, reason=f"{mod} not available yet")
+    out = tmp_path / "demo"
+    code = main(["demo", "--out", str(out), "--seed", "3"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "(1) A->B" in captured.out
+    data = json.loads((out / "task.json").read_text())
+    task = task_from_dict(data, source="task.json")
+    assert data["models"]["grasped"]["path"] == "grasped.stl"
+    assert data["models"]["grasped"]["sha256"] == sha256_of(out / "grasped.stl")
+    assert (out / "dof.png").exists() and (out / "frames.csv").exists()
+    assert task.states[0].elements == ()
+    assert any(t.critical for t in task.transitions)
+
+
+def test_plot_worker_draws_in_a_child_process(tmp_path):
+    import types
+
+    from apo.cli.analyze import PlotWorker
+    from test_task import make_task
+
+    worker = PlotWorker()
+    rec = types.SimpleNamespace(task=make_task(), times=np.arange(10) * 0.1)
+    png = tmp_path / "dof.png"
+    assert worker.plot(rec, png, "title")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert [p.name for p in tmp_path.iterdir()] == ["dof.png"]
+    idle = PlotWorker()
+    idle.close()  # released without a plot: the child exits, nothing is written
+    assert idle.pid is None
