@@ -1,0 +1,174 @@
+"""``apo track``: recorded depth (or stereo) frames -> pose trajectory CSV.
+
+Writes ``OUT`` with :func:`apo.io.poses.write_pose_csv` (the CSV ``apo analyze`` reads, plus a
+``confidence`` column) and, beside it,
+``<OUT without .csv>.environment.json`` with the environment's pose in the camera frame.
+See ``docs/perception.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import InputFormatError
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+
+
+def _pose_arg(text: str, name: str, scale: float) -> npt.NDArray[np.float64]:
+    from apo.spatial import pose_from_xyz_quat
+
+    try:
+        values = [float(x) for x in text.replace(",", " ").split()]
+        X = pose_from_xyz_quat(values)
+    except ValueError as exc:
+        raise InputFormatError(
+            f"{name}: expected 7 numbers 'x y z qw qx qy qz', got {text!r} ({exc})"
+        ) from None
+    X[:3, 3] *= scale
+    return X
+
+
+def _colour_arg(text: str) -> tuple[float, float, float]:
+    try:
+        r, g, b = (float(x) for x in text.replace(",", " ").split())
+    except ValueError:
+        raise InputFormatError(f"--colour: expected 'r g b' in 0..255, got {text!r}") from None
+    return (r / 255.0, g / 255.0, b / 255.0)
+
+
+def environment_path(out: Path) -> Path:
+    """Return the path of the environment pose file written beside ``out``."""
+    stem = out.name[: -len(".csv")] if out.name.lower().endswith(".csv") else out.name
+    return out.with_name(stem + ".environment.json")
+
+
+def _xyzq(X: npt.NDArray[np.float64], scale: float) -> list[float]:
+    from apo.spatial import position_quaternion_from_pose
+
+    p, q = position_quaternion_from_pose(X)
+    return [*(float(v) / scale for v in p), *(float(v) for v in q)]
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``apo track``."""
+    from apo.io.poses import write_pose_csv
+    from apo.perception.segment import ColourModel
+    from apo.perception.track import TrackOptions, track_frames
+
+    scale = UNITS[args.units]
+    init_g = _pose_arg(args.init_grasped, "--init-grasped", scale) if args.init_grasped else None
+    init_e = (
+        _pose_arg(args.init_environment, "--init-environment", scale)
+        if args.init_environment
+        else None
+    )
+    colour = (
+        ColourModel(_colour_arg(args.colour), args.colour_tolerance)
+        if args.colour
+        else ColourModel.white()
+    )
+    options = TrackOptions(colour=colour, min_confidence=args.min_confidence)
+    result = track_frames(
+        args.frames,
+        args.grasped,
+        args.environment,
+        units=args.units,
+        init_grasped=init_g,
+        init_environment=init_e,
+        options=options,
+    )
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    keep = ~result.lost
+    write_pose_csv(
+        out,
+        result.times[keep],
+        result.X_EG[keep],
+        units=args.units,
+        extra={"confidence": result.confidence[keep]},
+    )
+    kept = int(keep.sum())
+    lost = [int(i) for i in np.nonzero(result.lost)[0]]
+    env: dict[str, object] = {
+        "frame": "camera",
+        "units": args.units,
+        "X_CE": _xyzq(result.X_CE, scale),
+        "confidence": round(result.environment_confidence, 4),
+        "lost_frames": lost,
+    }
+    if result.X_WC is not None:
+        env["X_WC"] = _xyzq(result.X_WC, scale)
+        env["X_WE"] = _xyzq(result.X_WC @ result.X_CE, scale)
+    env_path = environment_path(out)
+    env_path.write_text(json.dumps(env, indent=2) + "\n", encoding="utf-8")
+    print(f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}")
+    if lost:
+        print(
+            f"warning: {len(lost)} frame(s) lost and left out of {out}: {lost[:20]}"
+            + (" ..." if len(lost) > 20 else ""),
+            file=sys.stderr,
+        )
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``track`` sub-command."""
+    p = subparsers.add_parser(
+        "track",
+        help="poses of both objects from recorded depth or stereo frames",
+        description=(
+            "Track the grasped and the environment object through a frames folder "
+            "(camera.json, rgb/, depth/; or a stereo folder: stereo.json, left/, right/; see "
+            "docs/perception.md). Writes OUT: t,x,y,z,qw,qx,qy,qz,confidence (the grasped "
+            "object in the environment frame, in --units) and OUT's stem + "
+            "'.environment.json' (the environment in the camera frame). Lost frames are left "
+            "out of the CSV and listed."
+        ),
+    )
+    p.add_argument("frames", metavar="FRAMES", help="frames folder (or stereo folder)")
+    p.add_argument("--grasped", required=True, metavar="G", help="grasped object model file")
+    p.add_argument(
+        "--environment", required=True, metavar="E", help="environment object model file"
+    )
+    p.add_argument(
+        "--units",
+        default="mm",
+        choices=sorted(UNITS),
+        help="units of the model files, the initial poses and the output (default mm)",
+    )
+    p.add_argument(
+        "--init-grasped",
+        metavar="POSE",
+        help='grasped object in the camera frame at the first frame, "x y z qw qx qy qz"',
+    )
+    p.add_argument(
+        "--init-environment",
+        metavar="POSE",
+        help='environment object in the camera frame, "x y z qw qx qy qz"',
+    )
+    p.add_argument(
+        "--colour",
+        metavar="RGB",
+        help='colour of the objects, "r g b" in 0..255 (default white)',
+    )
+    p.add_argument(
+        "--colour-tolerance",
+        type=float,
+        default=0.05,
+        help="chromaticity tolerance of --colour (default 0.05)",
+    )
+    p.add_argument(
+        "--min-confidence",
+        type=float,
+        default=0.8,
+        help="frames below this confidence are re-initialised, then lost (default 0.8)",
+    )
+    p.add_argument("--out", required=True, metavar="CSV", help="output pose CSV")
+    p.set_defaults(func=run)

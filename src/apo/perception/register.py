@@ -1,0 +1,510 @@
+"""Robust model-to-depth registration (the paper's 3DTM: a weighted least-squares ICP).
+
+The observed points of one object (camera frame) are registered to points sampled on its
+model, with the exact face normals of the model, by Open3D's point-to-plane ICP with a robust
+kernel (Tukey's biweight by default, Huber optionally): iteratively reweighted least squares,
+as 3DTM. A coarse-to-fine schedule of correspondence distances widens the basin of
+convergence.
+
+Confidence of a registration (:class:`Registration`) is the product of
+
+- the *fitness*: the fraction of observed points within ``inlier_distance`` of the posed model;
+- the *free-space consistency*: one minus the fraction of the model's pixels (rendered at the
+  estimated pose) where the sensor sees something *behind* the model's surface, which a solid
+  object there would have hidden;
+- the *non-penetration*: one minus the fraction of the model's surface inside the other
+  object (when its pose is known), since two solids cannot overlap.
+
+The first catches a model that explains too few of the points, the second a pose that
+explains the points but puts material where the camera sees through, the third a pose that
+hides the unseen part of the object inside the other one (a peg whose head is all that
+shows). A pose with low confidence is never reported as tracked (:mod:`apo.perception.track`).
+
+Without an initial pose, :func:`initialise` tries many orientations (the 24 rotations of the
+cube, aligned by principal axes, and the 60 of the icosahedron) about the points' centroid,
+runs a short ICP from each, and keeps the most confident.
+
+Open3D is optional: it is imported by the functions that need it
+(``pip install apo[perception]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import ApoError
+from apo.perception.frames import Camera
+from apo.perception.render import Triangles, rasterize
+from apo.spatial import invert_pose, transform_points
+
+__all__ = [
+    "ModelCloud",
+    "Registration",
+    "free_space_violation",
+    "initialise",
+    "model_cloud",
+    "orthonormalised",
+    "penetration",
+    "register",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def open3d() -> Any:
+    """Import Open3D quietly, or raise an :class:`ApoError` saying how to install it."""
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ApoError(
+            f"perception needs Open3D, which could not be imported ({exc}); "
+            "install it with `pip install apo[perception]` (on Debian/Ubuntu Open3D also "
+            "needs the system library libusb-1.0-0)"
+        ) from None
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+class ModelCloud:
+    """Points and normals sampled on a model's surface, ready for ICP.
+
+    Attributes
+    ----------
+    vertices : ndarray, shape (N, 3)
+        Model vertices, model frame ``M``, metres.
+    triangles : ndarray of int, shape (T, 3)
+        Vertex indices.
+    points, normals : ndarray, shape (K, 3)
+        Surface samples (model frame, metres) and their unit face normals.
+    diameter : float
+        Diagonal of the model's bounding box, metres.
+    """
+
+    def __init__(
+        self,
+        mesh: Triangles,
+        *,
+        n_points: int = 3000,
+        spacing: float = 0.0005,
+        max_dense: int = 40000,
+        seed: int = 0,
+    ) -> None:
+        V = np.asarray(mesh[0], dtype=np.float64)
+        T = np.asarray(mesh[1], dtype=np.int64)
+        a, b, c = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+        cross = np.cross(b - a, c - a)
+        area = np.linalg.norm(cross, axis=1) / 2
+        if area.sum() <= 0:
+            raise ApoError("model has zero surface area")
+        rng = np.random.default_rng(seed)
+        n = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
+
+        def sample(count: int) -> tuple[FloatArray, FloatArray]:
+            # Stratified area-weighted sampling: a fixed share per triangle, the rest random.
+            counts = np.floor(area / area.sum() * count).astype(np.int64)
+            extra = rng.choice(len(T), count - int(counts.sum()), p=area / area.sum())
+            counts += np.bincount(extra, minlength=len(T))
+            tri = np.repeat(np.arange(len(T)), counts)
+            r1 = np.sqrt(rng.random(len(tri)))
+            r2 = rng.random(len(tri))
+            pts = (
+                (1 - r1)[:, None] * a[tri]
+                + (r1 * (1 - r2))[:, None] * b[tri]
+                + (r1 * r2)[:, None] * c[tri]
+            )
+            return pts, n[tri]
+
+        self.points, self.normals = sample(n_points)
+        dense = int(np.clip(area.sum() / spacing**2, n_points, max_dense))
+        self.dense_points, self.dense_normals = sample(dense)
+        self.spacing = float(np.sqrt(area.sum() / dense))
+        self.vertices = V
+        self.triangles = T
+        self.diameter = float(np.linalg.norm(V.max(0) - V.min(0)))
+        self.centroid = self.points.mean(axis=0)
+        self._pcd: Any = None
+        self._dense: Any = None
+        self._tree: Any = None
+
+    @property
+    def pcd(self) -> Any:
+        """The Open3D point cloud of the sparse samples (coarse ICP stages)."""
+        if self._pcd is None:
+            self._pcd = _point_cloud(self.points, self.normals)
+        return self._pcd
+
+    @property
+    def dense_pcd(self) -> Any:
+        """The Open3D point cloud of the dense samples (the final ICP stage)."""
+        if self._dense is None:
+            self._dense = _point_cloud(self.dense_points, self.dense_normals)
+        return self._dense
+
+    def signed_distance(self, points_M: npt.ArrayLike) -> FloatArray:
+        """Approximate signed distance (metres, negative inside) of points in the model frame.
+
+        The distance to the nearest dense sample, signed by that sample's outward normal:
+        exact enough near the surface, which is where it is used (interpenetration).
+        """
+        _, point = self.residuals(points_M)
+        P = np.asarray(points_M, dtype=np.float64)
+        _, idx = self._tree.query(P)
+        side = np.einsum("ij,ij->i", P - self.dense_points[idx], self.dense_normals[idx])
+        return np.where(side < 0, -point, point)
+
+    def residuals(self, points_M: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Point-to-plane and point-to-point distances (metres) to the nearest dense sample."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.dense_points)
+        P = np.asarray(points_M, dtype=np.float64)
+        dist, idx = self._tree.query(P)
+        plane = np.abs(np.einsum("ij,ij->i", P - self.dense_points[idx], self.dense_normals[idx]))
+        return plane, np.asarray(dist, dtype=np.float64)
+
+
+def _point_cloud(points: FloatArray, normals: FloatArray) -> Any:
+    o3d = open3d()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    return pcd
+
+
+def model_cloud(mesh: Triangles, *, n_points: int = 4000, seed: int = 0) -> ModelCloud:
+    """Return the :class:`ModelCloud` of ``(vertices, triangles)`` (metres)."""
+    return ModelCloud(mesh, n_points=n_points, seed=seed)
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of registering a model to observed points.
+
+    Attributes
+    ----------
+    X_CM : ndarray, shape (4, 4)
+        Pose of the model frame ``M`` in the camera frame ``C`` (metres).
+    fitness : float
+        Fraction of the observed points within the inlier distance of the model.
+    rmse : float
+        RMS distance of those inliers, metres.
+    violation : float
+        Fraction of the model's rendered pixels behind which the sensor sees (0 when no depth
+        image was given).
+    n_points : int
+        Observed points used.
+    penetration : float
+        Fraction of the model's surface samples inside the obstacle (the other object), 0
+        when no obstacle was given.
+    """
+
+    X_CM: FloatArray
+    fitness: float
+    rmse: float
+    violation: float
+    n_points: int
+    penetration: float = 0.0
+
+    @property
+    def confidence(self) -> float:
+        """``fitness * (1 - violation) * (1 - penetration)``, in [0, 1]."""
+        return float(self.fitness * (1.0 - self.violation) * (1.0 - self.penetration))
+
+
+def orthonormalised(X: npt.ArrayLike) -> FloatArray:
+    """Return the rigid pose nearest to ``X`` (its rotation block projected onto SO(3)).
+
+    Compositions and Open3D's float arithmetic let a rotation block drift from orthonormal;
+    ``invert_pose`` assumes a rigid pose, so an error there would grow from frame to frame.
+    """
+    M = np.asarray(X, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(M[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, 2] = -U[:, 2]
+        R = U @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = M[:3, 3]
+    return out
+
+
+def _kernel(o3d: Any, loss: str, scale: float) -> Any:
+    reg = o3d.pipelines.registration
+    if loss == "tukey":
+        return reg.TukeyLoss(k=scale)
+    if loss == "huber":
+        return reg.HuberLoss(k=scale)
+    if loss == "l2":
+        return reg.L2Loss()
+    raise ValueError(f"unknown loss {loss!r}; expected 'tukey', 'huber' or 'l2'")
+
+
+def free_space_violation(
+    X_CM: npt.ArrayLike,
+    model: ModelCloud,
+    depth: npt.ArrayLike,
+    camera: Camera,
+    *,
+    tolerance: float = 0.005,
+) -> float:
+    """Fraction of the model's pixels where the sensor sees more than ``tolerance`` behind it.
+
+    Parameters
+    ----------
+    X_CM : ndarray, shape (4, 4)
+        Pose of the model in the camera frame (metres).
+    model : ModelCloud
+        The model.
+    depth : ndarray, shape (H, W)
+        Observed depth, metres, 0 where none (such pixels do not count).
+    camera : Camera
+        The camera.
+    tolerance : float, optional
+        Metres.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 1 when the model is not in view at all.
+    """
+    rendered, _ = rasterize(transform_points(X_CM, model.vertices), model.triangles, camera)
+    d = np.asarray(depth)
+    on = rendered > 0
+    n_model = int(np.count_nonzero(on))
+    if n_model == 0:
+        return 1.0
+    seen = on & (d > 0)
+    behind = seen & (d > rendered + tolerance)
+    return float(np.count_nonzero(behind)) / max(int(np.count_nonzero(seen)), 1)
+
+
+def penetration(
+    X_CM: npt.ArrayLike,
+    model: ModelCloud,
+    obstacle: tuple[ModelCloud, FloatArray],
+    *,
+    tolerance: float = 0.0015,
+    samples: int = 600,
+) -> float:
+    """Fraction of the model's surface samples deeper than ``tolerance`` inside the obstacle.
+
+    Parameters
+    ----------
+    X_CM : ndarray, shape (4, 4)
+        Pose of the model in the camera frame (metres).
+    model : ModelCloud
+        The model.
+    obstacle : (ModelCloud, ndarray of shape (4, 4))
+        The other object and its pose ``X_CO`` in the camera frame: two solids cannot overlap.
+    tolerance : float, optional
+        Metres; contact with some pose noise is not penetration.
+    samples : int, optional
+        Surface samples tested (every k-th of the sparse samples).
+    """
+    other, X_CO = obstacle
+    X_OM = invert_pose(X_CO) @ np.asarray(X_CM, dtype=np.float64)
+    pts = model.points[:: max(1, len(model.points) // samples)]
+    pts_O = transform_points(X_OM, pts)
+    lo, hi = other.vertices.min(0), other.vertices.max(0)
+    near = np.all((pts_O > lo - tolerance) & (pts_O < hi + tolerance), axis=1)
+    if not near.any():
+        return 0.0
+    inside = other.signed_distance(pts_O[near]) < -tolerance
+    return float(np.count_nonzero(inside)) / len(pts_O)
+
+
+def register(
+    points_C: npt.ArrayLike,
+    model: ModelCloud,
+    X_CM_init: npt.ArrayLike,
+    *,
+    max_distance: float | None = None,
+    inlier_distance: float = 0.002,
+    loss: str = "tukey",
+    iterations: int = 30,
+    depth: npt.ArrayLike | None = None,
+    camera: Camera | None = None,
+    coarse: bool = True,
+    dense: bool = True,
+    obstacle: tuple[ModelCloud, FloatArray] | None = None,
+) -> Registration:
+    """Robust point-to-plane ICP of a model to observed points, from an initial pose.
+
+    Parameters
+    ----------
+    points_C : ndarray, shape (N, 3)
+        Observed points of the object, camera frame, metres.
+    model : ModelCloud
+        The object's model.
+    X_CM_init : ndarray, shape (4, 4)
+        Initial pose of the model in the camera frame (metres).
+    max_distance : float, optional
+        Largest correspondence distance of the first stage (metres; default a quarter of the
+        model's diameter); later stages use a third, then a ninth of it (not less than twice
+        ``inlier_distance``). The last stage uses the dense samples.
+    inlier_distance : float, optional
+        Distance (metres) within which a point counts as explained, for the fitness; also the
+        scale of the robust kernel in the last stage.
+    loss : {"tukey", "huber", "l2"}, optional
+        Robust kernel.
+    iterations : int, optional
+        ICP iterations per stage.
+    depth : ndarray, shape (H, W), optional
+        The frame's depth (metres) with ``camera``: enables the free-space check.
+    camera : Camera, optional
+        The camera of ``depth``.
+    coarse : bool, optional
+        Run the coarse-to-fine schedule; False runs only one stage at ``max_distance`` on the
+        dense samples (tracking from a good prediction).
+    dense : bool, optional
+        Use the dense samples in the last stage (False: sparse only, for quick searches).
+    obstacle : (ModelCloud, ndarray of shape (4, 4)), optional
+        The other object and its pose in the camera frame: enables the interpenetration
+        check (see :func:`penetration`).
+
+    Returns
+    -------
+    Registration
+    """
+    o3d = open3d()
+    reg = o3d.pipelines.registration
+    P = np.asarray(points_C, dtype=np.float64)
+    if len(P) < 3:
+        return Registration(np.asarray(X_CM_init, dtype=np.float64), 0.0, np.inf, 1.0, len(P))
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    T = invert_pose(orthonormalised(X_CM_init))  # maps camera points into the model frame
+    d0 = max_distance if max_distance is not None else model.diameter / 4
+    stages = [d0, d0 / 3, d0 / 9] if coarse else [d0]
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations
+    )
+    for k, dist in enumerate(stages):
+        dist = max(dist, 2 * inlier_distance)
+        last = k == len(stages) - 1
+        target = model.dense_pcd if last and dense else model.pcd
+        kernel = _kernel(o3d, loss, inlier_distance if last else dist / 2)
+        est = reg.TransformationEstimationPointToPlane(kernel)
+        T = reg.registration_icp(src, target, dist, T, est, criteria).transformation
+    T = orthonormalised(np.asarray(T))
+    plane, point = model.residuals(transform_points(T, P))
+    inlier = (plane <= inlier_distance) & (point <= inlier_distance + 2 * model.spacing)
+    fitness = float(np.count_nonzero(inlier)) / len(P)
+    rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
+    X_CM = invert_pose(T)
+    violation = 0.0
+    if depth is not None and camera is not None:
+        violation = free_space_violation(X_CM, model, depth, camera)
+    pen = penetration(X_CM, model, obstacle) if obstacle is not None else 0.0
+    return Registration(X_CM, fitness, rmse, violation, len(P), pen)
+
+
+def _candidate_rotations(points_C: FloatArray, model: ModelCloud) -> list[FloatArray]:
+    from scipy.spatial.transform import Rotation
+
+    def axes(P: FloatArray) -> FloatArray:
+        _, _, vt = np.linalg.svd(P - P.mean(0), full_matrices=False)
+        R = vt.T
+        if np.linalg.det(R) < 0:
+            R[:, 2] = -R[:, 2]
+        return np.asarray(R)
+
+    R_obs = axes(points_C)
+    R_mod = axes(model.points)
+    cube = Rotation.create_group("O").as_matrix()
+    ico = Rotation.create_group("I").as_matrix()
+    out = [R_obs @ g @ R_mod.T for g in cube]
+    out += list(ico)
+    return out
+
+
+def initialise(
+    points_C: npt.ArrayLike,
+    model: ModelCloud,
+    *,
+    depth: npt.ArrayLike | None = None,
+    camera: Camera | None = None,
+    inlier_distance: float = 0.002,
+    loss: str = "tukey",
+    max_points: int = 400,
+    keep: int = 6,
+    seed: int | np.random.Generator | None = 0,
+    obstacle: tuple[ModelCloud, FloatArray] | None = None,
+) -> Registration:
+    """Find a model's pose from its observed points without an initial guess.
+
+    Every candidate orientation (see the module notes) is placed with the model's centroid
+    behind the points' centroid along the viewing ray and refined by a short ICP on at most
+    ``max_points`` points; the ``keep`` most confident (fitness, free space, penetration) are
+    refined on all points, and the most confident is returned.
+
+    Parameters
+    ----------
+    points_C : ndarray, shape (N, 3)
+        Observed points of the object, camera frame, metres.
+    model : ModelCloud
+        The object's model.
+    depth, camera : optional
+        The frame's depth (metres) and camera, for the free-space check.
+    inlier_distance : float, optional
+        Metres, see :func:`register`.
+    loss : {"tukey", "huber", "l2"}, optional
+        Robust kernel.
+    max_points : int, optional
+        Points used for the candidate search.
+    keep : int, optional
+        Candidates refined fully.
+    seed : int or Generator or None, optional
+        Seed of the point subsampling.
+    obstacle : (ModelCloud, ndarray of shape (4, 4)), optional
+        The other object and its pose: candidates that penetrate it lose confidence.
+
+    Returns
+    -------
+    Registration
+        The most confident candidate.
+    """
+    P = np.asarray(points_C, dtype=np.float64)
+    if len(P) < 10:
+        return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
+    rng = np.random.default_rng(seed)
+    sub = P if len(P) <= max_points else P[rng.choice(len(P), max_points, replace=False)]
+    c = P.mean(0)
+    ray = c / np.linalg.norm(c)
+    scored: list[Registration] = []
+    # The visible surface is nearer than the model's centroid: try it a sixth and a third of
+    # the model's size behind the points.
+    for depth_offset in (model.diameter / 6, model.diameter / 3):
+        centre = c + ray * depth_offset
+        for R in _candidate_rotations(P, model):
+            X = np.eye(4)
+            X[:3, :3] = R
+            X[:3, 3] = centre - R @ model.centroid
+            scored.append(
+                register(
+                    sub, model, X, inlier_distance=inlier_distance, loss=loss, iterations=12,
+                    depth=depth, camera=camera, obstacle=obstacle, dense=False,
+                )
+            )  # fmt: skip
+    scored.sort(key=lambda r: -r.confidence)
+    best: Registration | None = None
+    for cand in scored[:keep]:
+        r = register(
+            P,
+            model,
+            cand.X_CM,
+            max_distance=model.diameter / 12,
+            inlier_distance=inlier_distance,
+            loss=loss,
+            depth=depth,
+            camera=camera,
+            obstacle=obstacle,
+        )
+        if best is None or r.confidence > best.confidence:
+            best = r
+    assert best is not None
+    return best

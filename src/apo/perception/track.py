@@ -1,0 +1,442 @@
+"""Track both objects through a recorded sequence: frames -> poses (paper section 4.2).
+
+:func:`track_frames` runs the whole front end:
+
+1. **Object pixels** of each frame: background subtraction (recorded background, or the
+   support plane fitted to the first frame) and the objects' colour
+   (:mod:`apo.perception.segment`).
+2. **Occupancy histogram** over up to ``histogram_frames`` evenly spaced frames: the pixels
+   occupied in most frames are the environment's (it does not move).
+3. **Environment pose, from many frames at once**: the per-pixel median depth of the
+   environment's pixels over those frames (noise averaged, the grasped object's passages
+   removed) is registered to the environment model (robust ICP, or global initialisation
+   when no initial pose is given).
+4. **Grasped object, frame by frame**: object pixels not explained by the environment model
+   (rendered once at its pose), in an image window around the predicted pose (constant
+   velocity from the previous two frames), are registered to the grasped model by robust ICP
+   from the prediction, then from the last pose, then coarse-to-fine. The next frame's PNGs
+   are decoded in a background thread meanwhile.
+5. **Lost tracking**: a frame whose confidence is below ``min_confidence`` (or with too few
+   points) is re-initialised globally; if that fails too, the frame is marked lost
+   (pose NaN, ``lost`` True) and never reported as a pose.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import TrackingLostError
+from apo.perception.frames import Camera, FrameSource, open_frames
+from apo.perception.register import (
+    ModelCloud,
+    Registration,
+    initialise,
+    orthonormalised,
+    register,
+)
+from apo.perception.render import mesh_triangles, rasterize
+from apo.perception.segment import (
+    ColourModel,
+    Plane,
+    fit_support_plane,
+    foreground_from_background,
+    foreground_from_plane,
+    grasped_mask,
+    occupancy,
+    static_mask,
+)
+from apo.spatial import invert_pose, transform_points
+
+__all__ = ["TrackOptions", "TrackResult", "track_frames"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Settings of :func:`track_frames` (lengths in metres).
+
+    Attributes
+    ----------
+    colour : ColourModel
+        Colour of the two objects (default: white, as in the paper).
+    foreground_threshold : float
+        A pixel is in front of the background (or above the support plane) by more than this.
+    environment_threshold : float
+        A pixel within this depth of the rendered environment model is the environment's.
+    static_fraction : float
+        Occupancy above which a pixel is the environment's (occupancy histogram).
+    histogram_frames : int
+        Frames (evenly spaced) used for the histogram and the environment's pose.
+    inlier_distance : float
+        Distance within which an observed point is explained by a model (fitness).
+    min_confidence : float
+        Below this a frame is re-initialised, then marked lost.
+    good_confidence : float
+        Below this, the frame-to-frame registration also tries the last pose and the
+        coarse-to-fine schedule, and keeps the most confident result.
+    track_distance : float
+        Correspondence distance of the frame-to-frame ICP (from the predicted pose).
+    min_points : int
+        Fewer observed points than this: the object is not visible (lost).
+    max_points : int
+        Observed points of the grasped object used per frame (random subset).
+    loss : {"tukey", "huber", "l2"}
+        Robust kernel of the ICP.
+    seed : int
+        Seed of every random choice (subsampling, RANSAC).
+    """
+
+    colour: ColourModel = field(default_factory=ColourModel.white)
+    foreground_threshold: float = 0.004
+    environment_threshold: float = 0.004
+    static_fraction: float = 0.7
+    histogram_frames: int = 30
+    inlier_distance: float = 0.002
+    min_confidence: float = 0.8
+    good_confidence: float = 0.95
+    track_distance: float = 0.006
+    min_points: int = 60
+    max_points: int = 1500
+    loss: str = "tukey"
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Poses of the two objects through a sequence (metres).
+
+    Attributes
+    ----------
+    times : ndarray, shape (N,)
+        Seconds.
+    X_CG : ndarray, shape (N, 4, 4)
+        Grasped object in the camera frame; NaN where ``lost``.
+    X_CE : ndarray, shape (4, 4)
+        Environment object in the camera frame (static: one pose for the whole sequence).
+    X_EG : ndarray, shape (N, 4, 4)
+        Grasped object in the environment frame, ``inv(X_CE) @ X_CG``; NaN where ``lost``.
+    confidence : ndarray, shape (N,)
+        Per-frame confidence of the grasped object's pose, in [0, 1].
+    lost : ndarray of bool, shape (N,)
+        Frames where the grasped object could not be tracked.
+    environment_confidence : float
+        Confidence of ``X_CE``.
+    X_WC : ndarray, shape (4, 4), or None
+        The camera in the world frame, from ``camera.json``.
+    """
+
+    times: FloatArray
+    X_CG: FloatArray
+    X_CE: FloatArray
+    X_EG: FloatArray
+    confidence: FloatArray
+    lost: BoolArray
+    environment_confidence: float
+    X_WC: FloatArray | None = None
+
+
+def _largest_component(mask: BoolArray) -> BoolArray:
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask)
+    if n <= 1:
+        return mask
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return np.asarray(labels == int(np.argmax(sizes)), dtype=bool)
+
+
+class _Segmenter:
+    def __init__(self, src: FrameSource, options: TrackOptions) -> None:
+        self.camera = src.camera
+        self.options = options
+        _, bg_depth = src.background()
+        self.background = bg_depth
+        self.plane: Plane | None = None
+        if bg_depth is None:
+            d0 = src.depth(0)
+            pts = self.camera.backproject(d0)
+            self.plane = fit_support_plane(pts[:: max(1, len(pts) // 20000)], seed=options.seed)
+
+    def objects(
+        self,
+        rgb: npt.NDArray[np.uint8],
+        depth: npt.NDArray[np.float32],
+        window: Window | None = None,
+    ) -> BoolArray:
+        """Object pixels (of the window when given: all arrays are of the whole frame)."""
+        t = self.options.foreground_threshold
+        cam = self.camera
+        bg = self.background
+        if window is not None:
+            u0, v0, w, h = window
+            rgb = rgb[v0 : v0 + h, u0 : u0 + w]
+            depth = depth[v0 : v0 + h, u0 : u0 + w]
+            cam = cam.crop(u0, v0, w, h)
+            if bg is not None:
+                bg = bg[v0 : v0 + h, u0 : u0 + w]
+        if bg is not None:
+            fg = foreground_from_background(depth, bg, threshold=t)
+        else:
+            assert self.plane is not None
+            fg = foreground_from_plane(depth, cam, self.plane, threshold=t)
+        return fg & self.options.colour.mask(rgb)
+
+
+Window = tuple[int, int, int, int]
+
+
+def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> Window | None:
+    """Image window ``(u0, v0, width, height)`` of a model's bounding box grown by ``margin``."""
+    lo, hi = model.vertices.min(0) - margin, model.vertices.max(0) + margin
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    P = transform_points(X_CM, corners)
+    if np.any(P[:, 2] <= 0.01):
+        return None
+    uv = cam.project(P)
+    u0 = int(max(np.floor(uv[:, 0].min()), 0))
+    v0 = int(max(np.floor(uv[:, 1].min()), 0))
+    u1 = int(min(np.ceil(uv[:, 0].max()) + 1, cam.width))
+    v1 = int(min(np.ceil(uv[:, 1].max()) + 1, cam.height))
+    if u1 - u0 < 2 or v1 - v0 < 2:
+        return None
+    return u0, v0, u1 - u0, v1 - v0
+
+
+def _environment_points(
+    src: FrameSource, seg: _Segmenter, options: TrackOptions
+) -> tuple[FloatArray, npt.NDArray[np.float32]]:
+    n = len(src)
+    idx = np.unique(np.linspace(0, n - 1, min(n, options.histogram_frames)).round().astype(int))
+    masks = np.empty((len(idx), src.camera.height, src.camera.width), dtype=bool)
+    depths = np.empty(masks.shape, dtype=np.float32)
+    for k, i in enumerate(idx):
+        depth = src.depth(int(i))
+        masks[k] = seg.objects(src.rgb(int(i)), depth)
+        depths[k] = depth
+    static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
+    # Per-pixel median depth of the static pixels (noise averaged; passages removed).
+    median = _masked_median(depths, masks & static[None])
+    median_all = np.median(depths, axis=0).astype(np.float32)  # for the free-space check
+    env = _largest_component(static & (median > 0))
+    return src.camera.backproject(median, env), median_all
+
+
+def _masked_median(
+    values: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.float32]:
+    """Per-pixel median of ``values`` (N, H, W) over the frames where ``mask``; 0 if none."""
+    stack = np.sort(np.where(mask, values, np.float32(np.inf)), axis=0)
+    count = mask.sum(axis=0)
+    idx = np.maximum(count - 1, 0) // 2
+    med = np.take_along_axis(stack, idx[None], axis=0)[0]
+    return np.where(count > 0, med, 0.0).astype(np.float32)
+
+
+def _read(src: FrameSource, i: int) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
+    return src.rgb(i), src.depth(i)
+
+
+def _as_pose(X: npt.ArrayLike | None, name: str) -> FloatArray | None:
+    if X is None:
+        return None
+    M = np.asarray(X, dtype=np.float64)
+    if M.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 pose, got shape {M.shape}")
+    return M
+
+
+def track_frames(
+    frames: str | Path | FrameSource,
+    grasped_mesh: Any,
+    environment_mesh: Any,
+    *,
+    units: str | None = "mm",
+    init_grasped: npt.ArrayLike | None = None,
+    init_environment: npt.ArrayLike | None = None,
+    options: TrackOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> TrackResult:
+    """Poses of the grasped and the environment object through a recorded sequence.
+
+    Parameters
+    ----------
+    frames : str or Path or FrameSource
+        A frames folder or a stereo folder (see :func:`apo.perception.frames.open_frames`),
+        or an opened sequence.
+    grasped_mesh, environment_mesh : trimesh.Trimesh, (vertices, triangles) or path
+        The models (see :func:`apo.perception.render.mesh_triangles`).
+    units : {"mm", "cm", "m", "in"} or None, optional
+        Units of the models' coordinates (STEP files carry their own).
+    init_grasped : ndarray, shape (4, 4), optional
+        ``X_CG`` at the first frame, camera frame, **metres**; found by global
+        initialisation when None.
+    init_environment : ndarray, shape (4, 4), optional
+        ``X_CE``, camera frame, metres; found by global initialisation when None.
+    options : TrackOptions, optional
+        Thresholds and the colour model.
+    progress : callable(done, total), optional
+        Called after each frame.
+
+    Returns
+    -------
+    TrackResult
+        Poses in metres; lost frames have NaN poses and ``lost`` True.
+
+    Raises
+    ------
+    TrackingLostError
+        The environment cannot be found, or the grasped object is lost in every frame.
+    InputFormatError
+        The frames folder does not follow the documented layout.
+    """
+    opt = options or TrackOptions()
+    src: FrameSource = frames if not isinstance(frames, str | Path) else open_frames(frames)
+    cam: Camera = src.camera
+    G = ModelCloud(mesh_triangles(grasped_mesh, units=units), seed=opt.seed)
+    E = ModelCloud(
+        mesh_triangles(environment_mesh, units=units),
+        spacing=0.0003,
+        max_dense=200000,
+        seed=opt.seed,
+    )
+    XG0 = _as_pose(init_grasped, "init_grasped")
+    XE0 = _as_pose(init_environment, "init_environment")
+    rng = np.random.default_rng(opt.seed)
+    seg = _Segmenter(src, opt)
+
+    # Environment: many frames at once.
+    env_pts, median_depth = _environment_points(src, seg, opt)
+    if len(env_pts) < opt.min_points:
+        raise TrackingLostError(
+            f"environment object not found: only {len(env_pts)} static object pixels "
+            f"(check the colour model and the background)"
+        )
+    if len(env_pts) > 20000:
+        env_pts = env_pts[rng.choice(len(env_pts), 20000, replace=False)]
+    kw: dict[str, Any] = {"inlier_distance": opt.inlier_distance, "loss": opt.loss}
+    if XE0 is not None:
+        env = register(env_pts, E, XE0, depth=median_depth, camera=cam, **kw)
+    else:
+        env = initialise(env_pts, E, depth=median_depth, camera=cam, seed=opt.seed, **kw)
+    if env.confidence < opt.min_confidence:
+        raise TrackingLostError(
+            f"environment object not found: best pose has confidence {env.confidence:.2f} "
+            f"(fitness {env.fitness:.2f}, free-space violation {env.violation:.2f}) "
+            f"< {opt.min_confidence}"
+        )
+    X_CE = env.X_CM
+    env_depth, _ = rasterize(transform_points(X_CE, E.vertices), E.triangles, cam)
+    obstacle = (E, X_CE)
+
+    n = len(src)
+    X_CG = np.full((n, 4, 4), np.nan)
+    conf = np.zeros(n)
+    lost = np.ones(n, dtype=bool)
+    history: list[FloatArray] = []  # last tracked poses (for the prediction)
+    gap = 0
+    margin = opt.track_distance + 0.1 * G.diameter
+
+    def grasped_points(
+        rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None
+    ) -> tuple[FloatArray, npt.NDArray[np.float32], Camera]:
+        """Observed points of the grasped object, and the depth and camera they come from."""
+        env_d, d, c = env_depth, depth, cam
+        if window is not None:
+            u0, v0, w, h = window
+            env_d = env_depth[v0 : v0 + h, u0 : u0 + w]
+            d = depth[v0 : v0 + h, u0 : u0 + w]
+            c = cam.crop(u0, v0, w, h)
+        mask = grasped_mask(
+            seg.objects(rgb, depth, window), d, env_d, threshold=opt.environment_threshold
+        )
+        if window is None:
+            mask = _largest_component(mask)
+        pts = c.backproject(d, mask)
+        if len(pts) > opt.max_points:
+            pts = pts[rng.choice(len(pts), opt.max_points, replace=False)]
+        return pts, d, c
+
+    with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
+        pending = pool.submit(_read, src, 0)
+        for i in range(n):
+            rgb, depth = pending.result()
+            if i + 1 < n:
+                pending = pool.submit(_read, src, i + 1)
+            pred: FloatArray | None
+            if i == 0 and XG0 is not None:
+                pred = XG0
+            elif history and gap <= 2:
+                pred = history[-1]
+                if len(history) >= 2 and gap == 0:
+                    pred = orthonormalised(history[-1] @ invert_pose(history[-2]) @ history[-1])
+            else:
+                pred = None
+            result: Registration | None = None
+            window = _window(cam, pred, G, margin) if pred is not None else None
+            if pred is not None and window is not None:
+                pts, d, c = grasped_points(rgb, depth, window)
+                if len(pts) >= opt.min_points:
+                    # From the constant-velocity prediction, then from the last pose (the
+                    # object may have stopped), then coarse-to-fine.
+                    starts = [pred] if len(history) < 2 or gap else [pred, history[-1]]
+                    for start in starts:
+                        r = register(
+                            pts, G, start, max_distance=opt.track_distance, coarse=False,
+                            depth=d, camera=c, obstacle=obstacle, **kw,
+                        )  # fmt: skip
+                        if result is None or r.confidence > result.confidence:
+                            result = r
+                        if result.confidence >= opt.good_confidence:
+                            break
+                    if result is not None and result.confidence < opt.good_confidence:
+                        r = register(pts, G, pred, depth=d, camera=c, obstacle=obstacle, **kw)
+                        if r.confidence > result.confidence:
+                            result = r
+            if result is None or result.confidence < opt.min_confidence:
+                # (Re-)initialise from the whole frame.
+                pts, d, c = grasped_points(rgb, depth, None)
+                if len(pts) >= opt.min_points:
+                    again = initialise(
+                        pts, G, depth=d, camera=c, seed=opt.seed, obstacle=obstacle, **kw
+                    )
+                    if result is None or again.confidence > result.confidence:
+                        result = again
+            if result is not None:
+                conf[i] = result.confidence
+            if result is not None and result.confidence >= opt.min_confidence:
+                X_CG[i] = result.X_CM
+                lost[i] = False
+                history = [*history[-1:], result.X_CM]
+                gap = 0
+            else:
+                gap += 1
+            if progress is not None:
+                progress(i + 1, n)
+    if lost.all():
+        raise TrackingLostError(
+            f"grasped object lost in all {n} frames (best confidence {conf.max():.2f} "
+            f"< {opt.min_confidence})"
+        )
+    X_EG = np.einsum("ij,njk->nik", invert_pose(X_CE), X_CG)
+    return TrackResult(
+        np.asarray(src.times, dtype=np.float64),
+        X_CG,
+        X_CE,
+        X_EG,
+        conf,
+        lost,
+        env.confidence,
+        cam.X_WC,
+    )

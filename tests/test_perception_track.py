@@ -1,0 +1,187 @@
+"""Tracking rendered sequences (apo.perception.register, apo.perception.track).
+
+The scene is the built-in insertion (apo.perception.example): 50 mm parts, camera at 0.33 m,
+rendered at 320x240 with realistic depth noise (sigma = 1.5 mm at 1 m, 0.16 mm at the parts).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apo.errors import TrackingLostError
+from apo.perception.example import example_camera, insertion_trajectory, peg_and_slot
+from apo.perception.render import DepthNoise, render_demonstration
+from apo.perception.segment import ColourModel
+from apo.spatial import invert_pose, pose_from_twist, rotation_angle, transform_points
+
+pytest.importorskip("open3d")
+
+from apo.perception.register import ModelCloud, initialise, register
+from apo.perception.track import TrackOptions, track_frames
+
+NOISE = DepthNoise(sigma_1m=1.5e-3)
+
+
+def errors(X_est: np.ndarray, X_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.linalg.norm(X_est[..., :3, 3] - X_true[..., :3, 3], axis=-1) * 1e3
+    R = np.einsum("...ji,...jk->...ik", X_est[..., :3, :3], X_true[..., :3, :3])
+    rot = np.degrees([rotation_angle(r) for r in R.reshape(-1, 3, 3)])
+    return pos, rot
+
+
+RZ180 = np.diag([-1.0, -1.0, 1.0, 1.0])  # both parts are symmetric under it
+
+
+def sym_errors(X_est: np.ndarray, X_true: np.ndarray) -> tuple[float, float]:
+    """Pose error (mm, deg) up to the parts' 180 deg symmetry about their z axis."""
+    best = min(
+        (errors(X_est @ S, X_true) for S in (np.eye(4), RZ180)),
+        key=lambda e: float(np.max(e[1])),
+    )
+    return float(np.max(best[0])), float(np.max(best[1]))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    cam, X_CE = example_camera(320, 240)
+    peg, slot = peg_and_slot()
+    times, X_EG = insertion_trajectory(12, duration=1.2)
+    root = tmp_path_factory.mktemp("frames")
+    render_demonstration(peg, slot, X_CE, X_EG, times, cam, root, noise=NOISE, seed=0, hand=True)
+    return {"root": root, "cam": cam, "X_CE": X_CE, "X_EG": X_EG, "peg": peg, "slot": slot}
+
+
+def test_tracking_with_initial_poses_within_bounds(scene: dict) -> None:
+    X_CE = scene["X_CE"]
+    res = track_frames(
+        scene["root"], scene["peg"], scene["slot"], units="m",
+        init_grasped=X_CE @ scene["X_EG"][0], init_environment=X_CE,
+    )  # fmt: skip
+    assert not res.lost.any()
+    assert np.all(res.confidence > 0.9)
+    pos, rot = errors(res.X_EG, scene["X_EG"])
+    # Bounds: the benchmark's targets (1 mm, 0.5 deg) on every frame, a quarter of them median.
+    assert np.median(pos) < 0.25 and pos.max() < 1.0
+    assert np.median(rot) < 0.15 and rot.max() < 0.5
+    env_pos, env_rot = errors(res.X_CE, X_CE)
+    assert env_pos < 0.2 and env_rot < 0.2
+    np.testing.assert_allclose(res.X_EG, np.einsum("ij,njk->nik", invert_pose(res.X_CE), res.X_CG))
+    np.testing.assert_allclose(res.times, np.linspace(0, 1.2, 12), atol=1e-6)
+    assert res.X_WC is not None
+
+
+def test_tracking_without_initial_poses(scene: dict) -> None:
+    # Global initialisation; both parts have a 180 deg symmetry about z, so compare shapes.
+    res = track_frames(scene["root"], scene["peg"], scene["slot"], units="m")
+    X_CG_true = scene["X_CE"] @ scene["X_EG"]
+    env_pos, env_rot = sym_errors(res.X_CE, scene["X_CE"])
+    assert env_pos < 0.2 and env_rot < 0.2
+    assert not res.lost.any()
+    for a, b in zip(res.X_CG, X_CG_true, strict=True):
+        pos, rot = sym_errors(a, b)
+        assert pos < 1.0 and rot < 0.5
+
+
+def test_robust_kernel_rejects_outliers() -> None:
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    rng = np.random.default_rng(0)
+    X_true = np.eye(4)
+    X_true[:3, 3] = [0.01, -0.02, 0.35]
+    pts = transform_points(X_true, model.points[rng.choice(len(model.points), 1000)])
+    pts += rng.normal(0, 1e-4, pts.shape)
+    outliers = X_true[:3, 3] + rng.uniform(-0.03, 0.03, (300, 3))  # 23 % clutter
+    obs = np.vstack([pts, outliers])
+    start = pose_from_twist([0.05, -0.04, 0.03, 0.003, -0.002, 0.002]) @ X_true
+    tukey = register(obs, model, start, loss="tukey")
+    pos, rot = errors(tukey.X_CM, X_true)
+    assert pos < 0.1 and rot < 0.1
+    assert 0.7 < tukey.fitness < 0.85  # the clutter is not explained
+
+
+def test_initialise_finds_pose_from_scratch() -> None:
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    X_true = pose_from_twist([0.4, 1.0, -0.7, 0.0, 0.0, 0.0])
+    X_true[:3, 3] = [0.02, 0.01, 0.3]
+    visible = model.points[model.normals @ (invert_pose(X_true)[:3, :3] @ -X_true[:3, 3]) > 0]
+    result = initialise(transform_points(X_true, visible), model, seed=0)
+    assert result.fitness > 0.95
+    pos, rot = sym_errors(result.X_CM, X_true)
+    assert pos < 0.2 and rot < 0.2
+
+
+def test_lost_frames_are_flagged_and_tracking_recovers(tmp_path: Path) -> None:
+    cam, X_CE = example_camera(320, 240)
+    peg, slot = peg_and_slot()
+    times, X_EG = insertion_trajectory(10, duration=1.0)
+    X_EG[4:6, :3, 3] += [0.0, 0.0, 2.0]  # frames 4, 5: the peg leaves the view (2 m up)
+    render_demonstration(peg, slot, X_CE, X_EG, times, cam, tmp_path, noise=NOISE, seed=1)
+    res = track_frames(
+        tmp_path, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE
+    )
+    assert res.lost.tolist() == [False] * 4 + [True] * 2 + [False] * 4
+    assert np.isnan(res.X_EG[4:6]).all()
+    assert np.all(res.confidence[4:6] < 0.6)
+    for k in (6, 7, 8, 9):  # recovered by global re-initialisation
+        pos, rot = sym_errors(res.X_EG[k], X_EG[k])
+        assert pos < 1.0 and rot < 0.5
+
+
+def test_environment_not_found_raises(scene: dict) -> None:
+    red = TrackOptions(colour=ColourModel((1.0, 0.0, 0.0), 0.05, 0.3))  # the parts are white
+    with pytest.raises(TrackingLostError, match="environment object not found"):
+        track_frames(scene["root"], scene["peg"], scene["slot"], units="m", options=red)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="found at hand-over: from the true poses apo.recognition marks the free -> "
+    "stem-on-floor transition not direct (no sub-skills); from tracked poses (errors "
+    "< 0.5 mm, < 0.1 deg) it finds push_to sub-skills, and with 40 frames an intermediate "
+    "state. To settle with the recognition owner (or script the example through "
+    "apo.synthetic).",
+    strict=False,
+)
+def test_recognition_from_rendered_frames_matches_true_poses(tmp_path: Path) -> None:
+    """The task recognised from tracked frames has the sub-skills of the one from the truth."""
+    pytest.importorskip("apo.correction")
+    from apo.geometry import polyhedron_from_triangles
+    from apo.recognition import recognize
+
+    cam, X_CE = example_camera(320, 240)
+    peg, slot = peg_and_slot()
+    times, X_EG = insertion_trajectory(16, duration=1.6)
+    X_EG = np.concatenate([X_EG, np.repeat(X_EG[-1:], 4, axis=0)])  # rest in the slot
+    times = np.arange(len(X_EG)) * 0.1
+    render_demonstration(peg, slot, X_CE, X_EG, times, cam, tmp_path, noise=NOISE, hand=True)
+    res = track_frames(
+        tmp_path, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE
+    )
+    assert not res.lost.any()
+    G = polyhedron_from_triangles(*peg)
+    E = polyhedron_from_triangles(*slot)
+    truth = recognize(G, E, times, X_EG)
+    observed = recognize(G, E, res.times, res.X_EG)
+    assert observed.subskill_sequence() == truth.subskill_sequence()
+    assert len(truth.subskill_sequence()) > 0
+
+
+def test_tracking_without_background_frames_uses_the_table_plane(tmp_path: Path) -> None:
+    cam, X_CE = example_camera(320, 240)
+    peg, slot = peg_and_slot()
+    times, X_EG = insertion_trajectory(6, duration=0.6)
+    render_demonstration(
+        peg, slot, X_CE, X_EG, times, cam, tmp_path, noise=NOISE, seed=4, background=False
+    )
+    assert not (tmp_path / "background").exists()
+    res = track_frames(
+        tmp_path, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE
+    )
+    assert not res.lost.any()
+    for a, b in zip(res.X_EG, X_EG, strict=True):  # fast motion: re-initialised frames may
+        pos, rot = sym_errors(a, b)  # come back in the symmetric pose
+        assert pos < 1.0 and rot < 0.5
