@@ -37,7 +37,10 @@ def make_task(units: str = "mm") -> TaskModel:
         State("C", (6, 9), (0.6, 0.9), False, (3, 0, 0, 3, 0, 0, 0, 0), FREE, (), X0, 7,
               same_as="A"),
     )  # fmt: skip
-    push = SubSkill("push_to", "rotation", "I", np.array([0.0, 1.0, 0.0]))
+    push = SubSkill(
+        "push_to", "rotation", "I", np.array([0.0, 1.0, 0.0]), np.array([0.001, 0.0, 0.003]),
+        "contacts",
+    )  # fmt: skip
     transitions = (
         Transition("A", "B", 5, {"translation": (("M", "SD"),), "rotation": (("M", "SD"),)},
                    (push,), False),
@@ -79,7 +82,8 @@ def test_lengths_written_in_the_task_units():
     assert q == pytest.approx([np.cos(0.2), 0, np.sin(0.2), 0])
     assert d["transitions"][0]["dof_transitions"]["translation"] == [["M", "SD"]]
     assert d["transitions"][0]["subskills"][0] == {
-        "kind": "push_to", "space": "rotation", "type": "I", "direction": [0.0, 1.0, 0.0]
+        "kind": "push_to", "space": "rotation", "type": "I", "direction": [0.0, 1.0, 0.0],
+        "point": [1.0, 0.0, 3.0], "source": "contacts",
     }  # fmt: skip
     assert d["models"]["grasped"] == {"path": "peg.step", "sha256": "a" * 64, "name": "peg"}
 

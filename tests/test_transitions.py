@@ -527,3 +527,68 @@ def test_direction_from_poses_when_nothing_else_tells():
 def test_bad_pose_is_rejected():
     with pytest.raises(InputFormatError, match="4x4"):
         analyze_transition(PAPER["A"], PAPER["B"], X_EG_before=np.eye(3))
+
+
+def _moved(st: ContactState, R: np.ndarray, t: np.ndarray) -> ContactState:
+    """The same state after a rigid motion (R, t) of the whole scene."""
+    return state(
+        *(
+            ContactElement(e.kind, e.grasped, e.environment, R @ e.point + t, e.normals @ R.T)
+            for e in st.elements
+        )
+    )
+
+
+def _pose(R: np.ndarray, t) -> np.ndarray:
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R, t
+    return X
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_rotation_push_to_axis_passes_through_the_pivot_seen_in_the_poses():
+    # The block turned about the vertical line through its corner (1, 1) until its face
+    # landed flush on the wall x = 1: that corner moved least, so the axis passes through it.
+    before, after = on_table(), against_wall([(1, 0, 0.5), (1, 1, 0.5)])
+    X_after = np.eye(4)
+    c = np.array([1.0, 1.0, 0.0])
+    X_before = _pose(_rz(0.1), c - _rz(0.1) @ c)  # turned by 0.1 rad about the corner
+    tr = analyze_transition(
+        dof_of(before),
+        dof_of(after),
+        before_state=before,
+        after_state=after,
+        X_EG_before=X_before,
+        X_EG_after=X_after,
+    )
+    (rot,) = [s for s in tr.subskills if s.space == "rotation"]
+    # the axis is the vertical through (1, 1): its point closest to the origin is (1, 1, 0)
+    assert abs(rot.direction @ Z) == pytest.approx(1.0)
+    np.testing.assert_allclose(rot.point, [1.0, 1.0, 0.0], atol=1e-9)
+    # and it turns the block into the wall: the other end of the face moves in +x
+    v = np.cross(rot.direction, np.array([1.0, 0.0, 0.5]) - rot.point)
+    assert v[0] > 0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rotation_sub_skill_axis_moves_with_the_scene(seed: int):
+    # The reported axis is a property of the contacts, not of where the origin of E is.
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(size=3) * 5
+    before, after = on_table(), against_wall([(1, 0, 0.5), (1, 1, 0.5)])
+    tr0 = analyze_transition(dof_of(before), dof_of(after), before_state=before, after_state=after)
+    b1, a1 = _moved(before, R, t), _moved(after, R, t)
+    tr1 = analyze_transition(dof_of(b1), dof_of(a1), before_state=b1, after_state=a1)
+    (r0,) = [s for s in tr0.subskills if s.space == "rotation"]
+    (r1,) = [s for s in tr1.subskills if s.space == "rotation"]
+    np.testing.assert_allclose(r1.direction, R @ r0.direction, atol=1e-7)
+    # the moved point of axis 0 lies on axis 1
+    q = R @ r0.point + t - r1.point
+    np.testing.assert_allclose(np.cross(q, r1.direction), 0.0, atol=1e-7)

@@ -774,8 +774,13 @@ def _state_at(
     by_key = {e.key: e for e in found.elements}
     if not key <= set(by_key):
         return fallback
-    elements = tuple(sorted((by_key[k] for k in key), key=lambda e: e.key))
-    touching = exact.find(X).touching | {(e.grasped, e.environment) for e in elements}
+    held = exact.find(X)
+    closure = {e.key: e for e in held.elements}
+    # every element that holds at the corrected pose: an observed subset of a contact (three
+    # of a face's four vertices seen within the threshold) is the whole contact
+    chosen = list(closure.values()) if key <= set(closure) else [by_key[k] for k in key]
+    elements = tuple(sorted(chosen, key=lambda e: e.key))
+    touching = held.touching | {(e.grasped, e.environment) for e in elements}
     return ContactState(elements=elements, touching=frozenset(touching))
 
 
@@ -790,7 +795,14 @@ def _transition_record(
 ) -> Transition:
     transitions = importlib.import_module("apo.transitions")
 
-    tr = transitions.analyze_transition(a.dof, b.dof)
+    tr = transitions.analyze_transition(
+        a.dof,
+        b.dof,
+        before_state=a.state,
+        after_state=b.state,
+        X_EG_before=a.X_EG,
+        X_EG_after=b.X_EG,
+    )
     dof_t: dict[str, tuple[tuple[str, str], ...]] = {}
     raw = tr.dof_transitions
     for sp in ("translation", "rotation"):
@@ -800,13 +812,12 @@ def _transition_record(
         SubSkill(
             kind=_enum_str(s.kind),
             space=_enum_str(s.space),
-            type=None if getattr(s, "type", None) is None else _enum_str(s.type),
-            direction=np.asarray(
-                getattr(s, "direction", None)
-                if getattr(s, "direction", None) is not None
-                else np.zeros(3),
-                dtype=np.float64,
-            ).reshape(3),
+            type=None if s.type is None else _enum_str(s.type),
+            direction=np.zeros(3)
+            if s.direction is None
+            else np.asarray(s.direction, dtype=np.float64).reshape(3),
+            point=None if s.point is None else np.asarray(s.point, dtype=np.float64).reshape(3),
+            source=s.source,
         )
         for s in tr.subskills
     )
@@ -1226,6 +1237,14 @@ def recognize_frames(
     trans = np.where(feasible, w.switch, w.switch + w.jump)
     np.fill_diagonal(trans, 0.0)
     path, _cost = viterbi(emission, trans)
+    # Candidates observed with different subsets of one contact are the same state once
+    # their poses are corrected (their closures agree): one id for them all.
+    canon = np.arange(k_count)
+    first_of: dict[StateKey, int] = {}
+    for k, maybe in enumerate(candidates):
+        if maybe is not None and maybe.converged:
+            canon[k] = first_of.setdefault(maybe.state.key, k)
+    path = canon[path]
     tm["segmentation"] += time.perf_counter() - t3
 
     # Per-frame pose correction under the chosen state (batched by state): residuals

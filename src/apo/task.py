@@ -149,12 +149,21 @@ class SubSkill:
     direction : ndarray, shape (3,)
         Unit direction (translation) or rotation axis (rotation), environment frame; zeros
         when the transition does not fix one.
+    point : ndarray, shape (3,), metres, or None
+        Rotation only: a point on the rotation axis (the one closest to the origin of the
+        environment frame); None for translation or when not determined.
+    source : str
+        What fixed ``direction``: ``"contacts"`` (separating normals of the elements that
+        appear or disappear), ``"detaching_direction"``, ``"poses"`` (the observed
+        displacement) or ``"none"``.
     """
 
     kind: str
     space: str
     type: str | None
     direction: FloatArray
+    point: FloatArray | None = None
+    source: str = "none"
 
 
 @dataclass(frozen=True)
@@ -359,7 +368,14 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
                 sp: [[a, b] for a, b in t.dof_transitions.get(sp, ())] for sp in SPACES
             },
             "subskills": [
-                {"kind": u.kind, "space": u.space, "type": u.type, "direction": _vec(u.direction)}
+                {
+                    "kind": u.kind,
+                    "space": u.space,
+                    "type": u.type,
+                    "direction": _vec(u.direction),
+                    "point": None if u.point is None else _vec(u.point, k),
+                    "source": u.source,
+                }
                 for u in t.subskills
             ],
             "critical": bool(t.critical),
@@ -616,6 +632,12 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
                     space=rd.string(rd.get(ud, "space", wu), f"{wu}.space", SPACES),
                     type=None if typ is None else rd.string(typ, f"{wu}.type", ("I", "II")),
                     direction=rd.vector(ud.get("direction", [0, 0, 0]), f"{wu}.direction", 3),
+                    point=(
+                        None
+                        if ud.get("point") is None
+                        else rd.vector(ud["point"], f"{wu}.point", 3) * k
+                    ),
+                    source=rd.string(ud.get("source", "none"), f"{wu}.source"),
                 )
             )
         transitions.append(

@@ -698,6 +698,24 @@ def _rotation_direction(
     maint_geom = ctx.after.geometry if kind is SubskillKind.RELEASE else ctx.before.geometry
     xis = _twists_for_axes(sub, maint_geom)
 
+    # The maintaining translations can be added to any maintaining twist: of the axes with a
+    # given direction, report the one through the pivot (_pivot), which is also frame-invariant.
+    ref = _pivot(kind, ctx)
+    t_maint = _orthonormal_rows(
+        np.asarray(maint_geom.translation_maintaining, dtype=np.float64).reshape(-1, 3)
+        if maint_geom is not None
+        else _empty()
+    )
+
+    def through_pivot(xi: FloatArray) -> FloatArray:
+        """Shift the axes of the twists (rows) through the pivot, keeping them maintaining."""
+        if ref is None or t_maint.shape[0] == 0:
+            return xi
+        v_ref = xi[:, 3:] + np.cross(xi[:, :3], ref)  # velocity of the pivot
+        out = xi.copy()
+        out[:, 3:] -= v_ref @ t_maint.T @ t_maint
+        return out
+
     def finish(xi: FloatArray, src: str) -> tuple[FloatArray | None, FloatArray | None, str]:
         s0, s1 = xi[:3], xi[3:]
         n0 = float(s0 @ s0)
@@ -706,6 +724,7 @@ def _rotation_direction(
         return s0 / np.sqrt(n0), np.cross(s0, s1) / n0, src
 
     if xis is not None:
+        xis = through_pivot(xis)
         if kind is SubskillKind.RELEASE:
             elems = _element_normals(ctx.before_state, ctx.after_state)
             sign = 1.0
@@ -727,9 +746,53 @@ def _rotation_direction(
         if axis is not None:
             xi1 = _twists_for_axes(axis[None, :], maint_geom)
             if xi1 is not None:
-                return finish(xi1[0], "poses")
+                return finish(through_pivot(xi1)[0], "poses")
             return axis, None, "poses"
     return None, None, "none"
+
+
+def _orthonormal_rows(a: FloatArray) -> FloatArray:
+    """Orthonormal rows spanning the rows of ``a`` (numerical rank by SVD)."""
+    if a.shape[0] == 0:
+        return _empty()
+    _u, sv, vt = np.linalg.svd(a, full_matrices=False)
+    keep = sv > _EPS_NORM * max(1.0, float(sv[0]))
+    return np.asarray(vt[keep], dtype=np.float64)
+
+
+def _pivot(kind: SubskillKind, ctx: _Ctx) -> FloatArray | None:
+    """Return the point a rotational sub-skill turns about, a point of its contact elements.
+
+    The elements are the new ones (push-to, slide) or the lost ones (release), else all
+    elements of the two states. Of their points, the pivot is the one the observed motion
+    moves least between the two states' poses (the point that stays put while the rest
+    turns into or out of contact); without poses, the first in element order.
+    """
+    if kind is SubskillKind.RELEASE:
+        elems = _element_normals(ctx.before_state, ctx.after_state)
+    else:
+        elems = _element_normals(ctx.after_state, ctx.before_state)
+    pts = [p for p, _ in elems]
+    if not pts:
+        pts = [
+            np.asarray(e.point, dtype=np.float64)
+            for st in (ctx.after_state, ctx.before_state)
+            if st is not None
+            for e in st.elements
+        ]
+    if not pts:
+        return None
+    if ctx.x_before is None or ctx.x_after is None or len(pts) == 1:
+        return pts[0]
+    P: FloatArray = np.asarray(pts, dtype=np.float64)
+    # the points lie at their own state's pose: carry them (with G) to the other state's pose
+    if kind is SubskillKind.RELEASE:
+        rel = ctx.x_after @ np.linalg.inv(ctx.x_before)
+    else:
+        rel = ctx.x_before @ np.linalg.inv(ctx.x_after)
+    moved = P @ rel[:3, :3].T + rel[:3, 3] - P
+    pivot: FloatArray = P[int(np.argmin(np.einsum("ij,ij->i", moved, moved)))]
+    return pivot
 
 
 def _push_type(ctx: _Ctx, sub: FloatArray) -> str | None:
