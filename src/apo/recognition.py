@@ -1245,6 +1245,7 @@ def recognize_frames(
         if maybe is not None and maybe.converged:
             canon[k] = first_of.setdefault(maybe.state.key, k)
     path = canon[path]
+    obs_c = canon[obs]  # the observed state, up to that identification
     tm["segmentation"] += time.perf_counter() - t3
 
     # Per-frame pose correction under the chosen state (batched by state): residuals
@@ -1266,7 +1267,7 @@ def recognize_frames(
         run_cands.append(k)
         cand = analysed_at(candidates, k)
         seg = np.arange(a, b + 1)
-        good = seg[(obs[seg] == k) & conv[seg]]
+        good = seg[(obs_c[seg] == k) & conv[seg]]
         if not len(good):
             good = seg[conv[seg]]
         if len(good):
@@ -1302,7 +1303,7 @@ def recognize_frames(
         )
         for i in range(len(runs) - 1)
     ]
-    rejected = _rejected_runs(obs, path, runs, ids, keys, candidates, feasible, emission, w)
+    rejected = _rejected_runs(obs_c, path, runs, ids, keys, candidates, feasible, emission, w)
     tm["task"] = time.perf_counter() - t4
 
     g_ref, e_ref = models or (
@@ -1330,7 +1331,7 @@ def recognize_frames(
         residual_before=res_before,
         residual_after=res_after,
         converged=conv,
-        repaired=obs != path,
+        repaired=obs_c != path,
         candidates=candidates,
         keys=keys,
         feasible=feasible,
@@ -1471,7 +1472,13 @@ def _rejected_runs(
         by = sorted({ids[int(run_of[f])] for f in range(a, b + 1)})
         cand = candidates[k]
         reasons = []
-        if cand is None:
+        chosen = candidates[int(path[a])]
+        if cand is None and chosen is not None and keys[k] <= chosen.state.key:
+            reasons.append(
+                f"part of {ids[int(run_of[a])]}: its elements are a subset of that state's "
+                "(the same contact, partly within the threshold)"
+            )
+        elif cand is None:
             reasons.append(
                 "noise: the cheapest segmentation drops it even without the direct-transition test"
             )
