@@ -1472,8 +1472,8 @@ def _rejected_runs(
         by = sorted({ids[int(run_of[f])] for f in range(a, b + 1)})
         cand = candidates[k]
         reasons = []
-        chosen = candidates[int(path[a])]
-        if cand is None and chosen is not None and keys[k] <= chosen.state.key:
+        taken = candidates[int(path[a])]
+        if cand is None and taken is not None and keys[k] <= taken.state.key:
             reasons.append(
                 f"part of {ids[int(run_of[a])]}: its elements are a subset of that state's "
                 "(the same contact, partly within the threshold)"
