@@ -43,7 +43,8 @@ def make_task(units: str = "mm") -> TaskModel:
     )  # fmt: skip
     transitions = (
         Transition("A", "B", 5, {"translation": (("M", "SD"),), "rotation": (("M", "SD"),)},
-                   (push,), False),
+                   (push,), False, choice={"translation": "geometry", "rotation": "unique"},
+                   alternatives={"translation": ((("M", "D"), ("D", "SD")),), "rotation": ()}),
         Transition("B", "C", 6, {"translation": (), "rotation": ()}, (), True),
     )  # fmt: skip
     return TaskModel(
@@ -86,6 +87,10 @@ def test_lengths_written_in_the_task_units():
         "point": [1.0, 0.0, 3.0], "source": "contacts",
     }  # fmt: skip
     assert d["models"]["grasped"] == {"path": "peg.step", "sha256": "a" * 64, "name": "peg"}
+    assert d["transitions"][0]["decomposition"] == {
+        "translation": {"choice": "geometry", "alternatives": [[["M", "D"], ["D", "SD"]]]},
+        "rotation": {"choice": "unique", "alternatives": []},
+    }
 
 
 def test_subskill_sequence():

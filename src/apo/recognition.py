@@ -829,6 +829,11 @@ def _transition_record(
         subskills=subs,
         critical=bool(tr.critical),
         direct=direct,
+        choice={sp: str(tr.choice.get(sp, "none")) for sp in ("translation", "rotation")},
+        alternatives={
+            sp: tuple(tuple(_pair(x) for x in alt.pairs) for alt in tr.alternatives.get(sp, ()))
+            for sp in ("translation", "rotation")
+        },
     )
 
 

@@ -184,6 +184,12 @@ class Transition:
     direct : bool
         True if it passes the direct-transition test (always, after the repair, unless the
         demonstration itself has an unavoidable jump).
+    choice : dict
+        Per space, why ``dof_transitions`` was chosen among the practical decompositions:
+        ``"unique"``, ``"geometry"`` (the before/after subspaces overlap best), ``"tie"``,
+        ``"no change"`` or ``"none"`` (no practical decomposition).
+    alternatives : dict
+        Per space, the other practical decompositions, best first.
     """
 
     from_id: str
@@ -193,6 +199,10 @@ class Transition:
     subskills: tuple[SubSkill, ...]
     critical: bool
     direct: bool = True
+    choice: Mapping[str, str] = field(default_factory=dict)
+    alternatives: Mapping[str, tuple[tuple[tuple[str, str], ...], ...]] = field(
+        default_factory=dict
+    )
 
 
 @dataclass(frozen=True)
@@ -380,6 +390,15 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
             ],
             "critical": bool(t.critical),
             "direct": bool(t.direct),
+            "decomposition": {
+                sp: {
+                    "choice": t.choice.get(sp, "unique"),
+                    "alternatives": [
+                        [[a, b] for a, b in alt] for alt in t.alternatives.get(sp, ())
+                    ],
+                }
+                for sp in SPACES
+            },
         }
         for t in task.transitions
     ]
@@ -612,15 +631,20 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
         if (a, b) != (states[i].id, states[i + 1].id):
             raise rd.fail(w, f"expected {states[i].id} -> {states[i + 1].id}, got {a} -> {b}")
         dd = rd.obj(rd.get(td, "dof_transitions", w), f"{w}.dof_transitions")
-        dof_t: dict[str, tuple[tuple[str, str], ...]] = {}
+        dof_t = {sp: _read_pairs(rd, dd.get(sp, []), f"{w}.dof_transitions.{sp}") for sp in SPACES}
+        choice: dict[str, str] = {}
+        alternatives: dict[str, tuple[tuple[tuple[str, str], ...], ...]] = {}
+        dec = rd.obj(td.get("decomposition", {}), f"{w}.decomposition")
         for sp in SPACES:
-            pairs = rd.lst(dd.get(sp, []), f"{w}.dof_transitions.{sp}")
-            out_pairs: list[tuple[str, str]] = []
-            for j, pr in enumerate(pairs):
-                wp = f"{w}.dof_transitions.{sp}[{j}]"
-                pl = rd.lst(pr, wp, 2)
-                out_pairs.append((rd.string(pl[0], wp, DOF_KINDS), rd.string(pl[1], wp, DOF_KINDS)))
-            dof_t[sp] = tuple(out_pairs)
+            if sp not in dec:
+                continue
+            ws = f"{w}.decomposition.{sp}"
+            ds = rd.obj(dec[sp], ws)
+            choice[sp] = rd.string(ds.get("choice", "unique"), f"{ws}.choice")
+            alternatives[sp] = tuple(
+                _read_pairs(rd, alt, f"{ws}.alternatives[{j}]")
+                for j, alt in enumerate(rd.lst(ds.get("alternatives", []), f"{ws}.alternatives"))
+            )
         subs: list[SubSkill] = []
         for j, ud_ in enumerate(rd.lst(rd.get(td, "subskills", w), f"{w}.subskills")):
             wu = f"{w}.subskills[{j}]"
@@ -648,6 +672,8 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
                 dof_transitions=dof_t,
                 subskills=tuple(subs),
                 critical=rd.boolean(rd.get(td, "critical", w), f"{w}.critical"),
+                choice=choice,
+                alternatives=alternatives,
                 direct=rd.boolean(td.get("direct", True), f"{w}.direct"),
             )
         )
@@ -690,6 +716,16 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
         threshold=rd.number(d.get("threshold", 0.0), "threshold") * k,
         extra=dict(rd.obj(extra, "extra")),
     )
+
+
+def _read_pairs(rd: _Reader, v: Any, where: str) -> tuple[tuple[str, str], ...]:
+    """Read a list of unit DOF transitions ``[["M", "D"], ...]``."""
+    out: list[tuple[str, str]] = []
+    for j, pr in enumerate(rd.lst(v, where)):
+        wp = f"{where}[{j}]"
+        pl = rd.lst(pr, wp, 2)
+        out.append((rd.string(pl[0], wp, DOF_KINDS), rd.string(pl[1], wp, DOF_KINDS)))
+    return tuple(out)
 
 
 def _model_from_dict(rd: _Reader, v: Any, where: str) -> ModelRef:
