@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -7,7 +8,9 @@ import pytest
 
 from apo import shapes
 from apo.errors import GeometryError, InputFormatError
+from apo.geometry import Polyhedron
 from apo.io import load_polyhedron, load_triangles, step_length_unit
+from test_synthetic import winding  # generalised winding number of a closed surface
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -142,5 +145,129 @@ def test_empty_file(tmp_path: Path) -> None:
 def test_open_mesh_names_the_file(tmp_path: Path) -> None:
     v, t = peg_triangles()
     path = write_mesh(tmp_path / "open.stl", v * 1000.0, t[1:])
-    with pytest.raises(GeometryError, match=r"^open\.stl: mesh is not closed"):
+    with pytest.raises(GeometryError, match=rf"^{re.escape(str(path))}: mesh is not closed"):
         load_polyhedron(path)
+    # also when the model is given another name: the message still names the file
+    with pytest.raises(GeometryError, match=rf"^{re.escape(str(path))}: mesh is not closed"):
+        load_polyhedron(path, name="grasped")
+
+
+def cube_mm() -> tuple[np.ndarray, np.ndarray]:
+    """A 40 mm cube (numbers in mm), outward triangles."""
+    c = shapes.box([0.04, 0.04, 0.04])
+    return c.vertices * 1000.0, np.concatenate(c.face_triangles)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".obj", ".ply"])
+def test_inconsistent_orientation_names_the_file(tmp_path: Path, suffix: str) -> None:
+    v, t = cube_mm()
+    t = t.copy()
+    t[0] = t[0][::-1]  # one triangle turned over: its 3 edges run the same way as neighbours'
+    path = write_mesh(tmp_path / f"flipped{suffix}", v, t)
+    with pytest.raises(
+        GeometryError, match=rf"^{re.escape(str(path))}: inconsistent orientation: 3 edge"
+    ):
+        load_polyhedron(path)
+
+
+def test_non_manifold_mesh_names_the_file(tmp_path: Path) -> None:
+    v, t = cube_mm()
+    path = write_mesh(tmp_path / "dup.ply", v, np.vstack([t, t[:1]]))  # a triangle twice
+    with pytest.raises(GeometryError, match=rf"^{re.escape(str(path))}: non-manifold mesh"):
+        load_polyhedron(path)
+
+
+def test_flat_mesh_is_degenerate(tmp_path: Path) -> None:
+    # two copies of one triangle, back to back: closed and oriented, but no volume
+    v = np.array([[0.0, 0.0, 0.0], [40.0, 0.0, 0.0], [0.0, 40.0, 0.0]])
+    path = write_mesh(tmp_path / "flat.obj", v, np.array([[0, 1, 2], [0, 2, 1]]))
+    with pytest.raises(
+        GeometryError, match=rf"^{re.escape(str(path))}: degenerate mesh: zero volume"
+    ):
+        load_polyhedron(path)
+
+
+def test_inside_out_mesh_warns_naming_the_file_and_is_flipped(tmp_path: Path) -> None:
+    v, t = cube_mm()
+    path = write_mesh(tmp_path / "inside_out.ply", v, t[:, ::-1])
+    with pytest.warns(UserWarning, match=rf"^{re.escape(str(path))}: the mesh is inside-out"):
+        p = load_polyhedron(path)
+    assert p.volume == pytest.approx(0.04**3)
+    # outward normals: the face at x = +20 mm has normal +x
+    k = int(np.argmax(p.face_normals[:, 0]))
+    np.testing.assert_allclose(p.face_normals[k], [1, 0, 0], atol=1e-12)
+    assert p.face_offsets[k] == pytest.approx(0.02)
+
+
+def test_zero_area_triangle_warns_naming_the_file(tmp_path: Path) -> None:
+    # Split the cube edge (a, b) at its midpoint m on one side only and close the gap with
+    # the zero-area triangle (a, m, b): closed and oriented, one degenerate face.
+    v, t = cube_mm()
+    a, b = int(t[0, 0]), int(t[0, 1])
+    m = len(v)
+    v = np.vstack([v, 0.5 * (v[a] + v[b])])
+    # the other triangle on edge (a, b) traverses it from b to a
+    other = next(i for i in range(1, len(t)) if {a, b} <= set(t[i].tolist()))
+    k = next(x for x in t[other].tolist() if x not in (a, b))
+    keep = [tri.tolist() for i, tri in enumerate(t) if i != other]
+    tris = np.array([*keep, [b, m, k], [m, a, k], [a, m, b]])
+    path = write_mesh(tmp_path / "sliver.obj", v, tris)
+    with pytest.warns(UserWarning, match=rf"^{re.escape(str(path))}: absorbed 1 zero-area"):
+        p = load_polyhedron(path)
+    assert (len(p.faces), len(p.edges), len(p.vertices)) == (6, 12, 8)  # m is dropped
+    assert bool(p.edge_convex.all())
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    ("name", "n_triangles", "concave"),
+    [
+        # the T-peg's two reflex corners where the stem meets the crossbar (x = +-17.5 mm)
+        ("peg.step", 28, [(-17.5, 35.0), (17.5, 35.0)]),
+        # the hole's slot bottom (x = +-17.5) and its two outer ledges (x = +-52.5), y = -35
+        ("hole.step", 44, [(-52.5, -35.0), (-17.5, -35.0), (17.5, -35.0), (52.5, -35.0)]),
+    ],
+)
+def test_authors_models_faces_normals_convexity(
+    real_data_dir: Path, name: str, n_triangles: int, concave: list[tuple[float, float]]
+) -> None:
+    _, tris = load_triangles(real_data_dir / name)
+    p = load_polyhedron(real_data_dir / name)
+    assert len(tris) == n_triangles  # coplanar triangles merged into len(p.faces) faces
+    assert len(p.faces) < len(tris)
+    # every face is planar: its vertices lie on its plane (float32 STEP coordinates)
+    for f, loop in enumerate(p.faces):
+        assert np.allclose(p.vertices[loop] @ p.face_normals[f], p.face_offsets[f], atol=1e-7)
+    # outward normals: just outside each face the winding number is 0, just inside 1
+    for f, tri in enumerate(p.face_triangles):
+        centre = p.vertices[tri[0]].mean(axis=0)
+        probes = centre + 1e-4 * np.outer([1.0, -1.0], p.face_normals[f])
+        np.testing.assert_allclose(winding(p, probes), [0.0, 1.0], atol=1e-6)
+    # concave edges: exactly the extruded (along z) edges at the reflex outline corners
+    ends = p.vertices[p.edges[~p.edge_convex]] * 1000.0
+    assert np.allclose(np.abs(ends[:, 0, 2]), 17.5) and np.allclose(ends[:, 1, 2], -ends[:, 0, 2])
+    got = sorted((round(float(x), 3), round(float(y), 3)) for x, y in ends[:, 0, :2])
+    assert got == sorted(concave)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(("suffix", "units", "factor"), [(".stl", "mm", 1e-3), (".ply", "m", 1.0)])
+def test_step_and_mesh_formats_agree(
+    real_data_dir: Path, tmp_path: Path, suffix: str, units: str, factor: float
+) -> None:
+    # The author's hole re-exported as a mesh in the given units reads as the same solid.
+    step = load_polyhedron(real_data_dir / "hole.step")
+    v, t = load_triangles(real_data_dir / "hole.step")
+    mesh = load_polyhedron(write_mesh(tmp_path / f"hole{suffix}", v / factor, t), units=units)
+    assert (len(mesh.faces), len(mesh.edges), len(mesh.vertices)) == (14, 36, 24)
+    # (ids follow the order of each file, so compare by coordinates; STEP arrives through
+    # float32 glTF in metres, binary STL is float32 in mm: agreement to ~1e-7 relative)
+    sv, mv = np.sort(step.vertices, axis=0), np.sort(mesh.vertices, axis=0)
+    np.testing.assert_allclose(mv, sv, rtol=0, atol=1e-8)
+    assert mesh.volume == pytest.approx(step.volume, rel=1e-6)
+
+    def concave(p: Polyhedron) -> list[list[float]]:
+        ends = np.sort(np.round(p.vertices[p.edges[~p.edge_convex]] * 1e4), axis=1)
+        return sorted(ends.reshape(-1, 6).tolist())
+
+    assert concave(mesh) == concave(step)

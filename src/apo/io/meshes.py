@@ -190,8 +190,15 @@ def load_polyhedron(
     InputFormatError
         Missing file, unknown suffix or units, unreadable or empty file.
     GeometryError
-        The mesh is not a closed, manifold, consistently oriented solid (the message starts
-        with the file name).
+        The mesh is not a closed, manifold, consistently oriented solid, or has zero volume
+        or zero-area faces (the message starts with the file path as given).
+
+    Warns
+    -----
+    UserWarning
+        Where the analysis can proceed safely: an inside-out mesh was flipped, triangles
+        collapsed by merging vertices or zero-area triangles were dropped (the message
+        starts with the file path), or a STEP file's own unit overrides ``units``.
 
     Examples
     --------
@@ -201,9 +208,21 @@ def load_polyhedron(
     """
     path = Path(path)
     vertices, triangles = load_triangles(path, units=units)
-    try:
-        return polyhedron_from_triangles(vertices, triangles, name=name or path.name)
-    except GeometryError as exc:
-        if name is None and not str(exc).startswith(path.name):
-            raise GeometryError(f"{path}: {exc}") from exc
-        raise
+    label = name or path.name
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            poly = polyhedron_from_triangles(vertices, triangles, name=label)
+        except GeometryError as exc:
+            raise GeometryError(f"{path}: {_strip_label(str(exc), label)}") from exc
+        finally:
+            messages = [(w.category, _strip_label(str(w.message), label)) for w in caught]
+    for category, message in messages:
+        warnings.warn(f"{path}: {message}", category, stacklevel=2)
+    return poly
+
+
+def _strip_label(message: str, label: str) -> str:
+    """``message`` without the ``"<label>: "`` prefix that the geometry code puts first."""
+    prefix = f"{label}: "
+    return message[len(prefix) :] if message.startswith(prefix) else message
