@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +39,35 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _json(value: Any) -> str:
+    """``value`` as JSON text, cut to 60 characters (for messages)."""
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _numbers(value: Any, where: str, path: str) -> list[float]:
+    """Return ``value`` as a list of 3 JSON numbers, or raise naming ``where``.
+
+    JSON ``true``/``false`` and strings are rejected, although numpy would convert them.
+    """
+    if not (
+        isinstance(value, list)
+        and len(value) == 3
+        and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+    ):
+        raise InputFormatError(f"{path}: {where}: expected 3 numbers [x, y, z], got {_json(value)}")
+    return [float(x) for x in value]
+
+
 def load_contacts(path: str) -> list[Any]:
     """Read a contact-state JSON file into a list of :class:`apo.dof.ContactPoint`.
+
+    Points and normals must be JSON numbers (not strings or booleans); ``"normals"`` is a list
+    of ``[nx, ny, nz]`` (a single ``[nx, ny, nz]`` is accepted as one normal). Only the
+    direction of a normal matters: each is divided by its largest absolute entry when that
+    exceeds 1, so that huge but finite components do not overflow. Points whose coordinates
+    exceed ``1e100`` are all divided by the same power of two (exact; the DOF indices do
+    not change under uniform scaling).
 
     Raises
     ------
@@ -64,23 +93,37 @@ def load_contacts(path: str) -> list[Any]:
         ) from None
     if not isinstance(data, dict) or not isinstance(data.get("contacts"), list):
         raise InputFormatError(f'{path}: expected an object with a "contacts" list')
-    points: list[Any] = []
-    normals: list[Any] = []
+    points: list[list[float]] = []
+    normals: list[list[list[float]]] = []
     for i, c in enumerate(data["contacts"]):
         if not isinstance(c, dict) or "point" not in c or "normals" not in c:
             raise InputFormatError(
                 f'{path}: contact {i}: expected an object with "point" and "normals"'
             )
-        points.append(c["point"])
-        normals.append(c["normals"])
+        points.append(_numbers(c["point"], f"contact {i}: point", path))
+        ns = c["normals"]
+        if isinstance(ns, list) and len(ns) == 3 and not any(isinstance(x, list) for x in ns):
+            ns = [ns]  # one normal written without the outer brackets
+        if not isinstance(ns, list) or not ns:
+            raise InputFormatError(
+                f"{path}: contact {i}: normals must be a non-empty list of [nx, ny, nz], "
+                f"got {_json(ns)}"
+            )
+        normals.append([_numbers(n, f"contact {i}: normal {j}", path) for j, n in enumerate(ns)])
+    pts = np.array(points, dtype=np.float64).reshape(-1, 3)
+    big = float(np.abs(pts[np.isfinite(pts)]).max(initial=0.0))
+    if big > 1e100:
+        pts = pts * 2.0 ** -math.frexp(big)[1]
+    scaled = []
+    for ns_i in normals:
+        n = np.array(ns_i, dtype=np.float64)
+        top = np.abs(n[np.isfinite(n)]).max(initial=0.0)
+        scaled.append(n / top if top > 1.0 else n)
     try:
-        pts, unit = check_arrays(points, normals)
+        checked, unit = check_arrays(pts, scaled)
     except InputFormatError as exc:
         raise InputFormatError(f"{path}: {exc}") from None
-    return [
-        ContactPoint(point=np.array(p, dtype=np.float64), normals=n)
-        for p, n in zip(pts, unit, strict=True)
-    ]
+    return [ContactPoint(point=p.copy(), normals=n) for p, n in zip(checked, unit, strict=True)]
 
 
 def _row(name: str, result: Any) -> list[str]:
@@ -105,6 +148,11 @@ def _print_table(rows: list[list[str]]) -> None:
                 for k, (c, w) in enumerate(zip(r, widths, strict=True))
             )
         )
+    if any(r[1] == "yes" for r in rows):
+        print(
+            "singular rows: tM..rC, rD_I, rD_II are the singular variants (SM, SD, SC), "
+            "as in the paper's Fig. 25"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,12 +162,16 @@ def run(args: argparse.Namespace) -> int:
     failed = 0
     rows: list[list[str]] = []
     for path in args.files:
-        try:
-            result = analyze(load_contacts(path))
-        except InputFormatError as exc:
-            failed += 1
-            print(f"apo dof: error: {exc}", file=sys.stderr)
-            continue
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                result = analyze(load_contacts(path))
+            except InputFormatError as exc:
+                failed += 1
+                print(f"apo dof: error: {exc}", file=sys.stderr)
+                continue
+        for w in caught:
+            print(f"apo dof: warning: {path}: {w.message}", file=sys.stderr)
         if args.json:
             print(json.dumps({"file": path, **dof_result_to_dict(result)}, separators=(",", ":")))
         else:
