@@ -1,10 +1,17 @@
-"""``apo contacts GRASPED ENVIRONMENT --pose ...``: contact elements and DOF at one pose."""
+"""``apo contacts GRASPED ENVIRONMENT --pose ...``: contact elements and DOF at one pose.
+
+The pose ``"x y z qw qx qy qz"`` is ``X_EG``, the grasped object's pose in the environment's
+frame (position in ``--units``). Points are printed in ``--units``, normals are unit vectors,
+both in the environment frame; the DOF fields are those of ``apo dof`` (``docs/contacts.md``).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import sys
+import warnings
 from typing import Any
 
 import numpy as np
@@ -33,15 +40,32 @@ def register(subparsers: Any) -> None:
         "--pose",
         required=True,
         metavar="'x y z qw qx qy qz'",
-        help="pose of the grasped object in the environment frame (position in --units)",
+        help=(
+            "pose of the grasped object in the environment frame: position in --units, "
+            "quaternion scalar first (normalised here)"
+        ),
     )
-    p.add_argument("--units", default="mm", help="length unit: mm (default), cm, m or in")
+    p.add_argument(
+        "--units",
+        default="mm",
+        help=(
+            "length unit of --pose, --threshold, the output and mesh files: mm (default), "
+            "cm, m or in; STEP files use the unit they declare"
+        ),
+    )
     p.add_argument(
         "--threshold",
         metavar="D",
-        help="contact distance threshold in --units (default: 1e-3 of the smaller model)",
+        help=(
+            "contact distance threshold in --units (default: 1e-3 of the smaller model's "
+            "bounding-box diagonal, for exact poses; observed poses need a few mm)"
+        ),
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object: frame, units, threshold, elements and the DOF fields",
+    )
     p.set_defaults(func=run)
 
 
@@ -73,8 +97,13 @@ def parse_pose(text: str, unit: float) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``apo contacts``; return the exit code."""
-    from apo.contact import find_contacts
+    """Run ``apo contacts``; return the exit code.
+
+    Warnings raised while reading the models (a mesh flipped inside-out, sliver triangles
+    absorbed, a STEP file's own unit overriding ``--units``) are printed on stderr as
+    ``apo contacts: warning: ...``.
+    """
+    from apo.contact import contact_points, default_threshold, find_contacts
     from apo.dof import analyze, dof_result_to_dict
     from apo.io.meshes import load_polyhedron
 
@@ -92,11 +121,17 @@ def run(args: argparse.Namespace) -> int:
             raise InputFormatError(f"--threshold: not a number: {args.threshold!r}") from exc
         if not (math.isfinite(threshold) and threshold > 0):
             raise InputFormatError(f"--threshold: must be positive, got {args.threshold!r}")
-    grasped = load_polyhedron(args.grasped, units=args.units)
-    environment = load_polyhedron(args.environment, units=args.units)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            grasped = load_polyhedron(args.grasped, units=args.units)
+            environment = load_polyhedron(args.environment, units=args.units)
+        finally:
+            for w in caught:
+                print(f"apo contacts: warning: {w.message}", file=sys.stderr)
+    if threshold is None:
+        threshold = default_threshold(grasped, environment)
     state = find_contacts(grasped, environment, X_EG, threshold=threshold)
-    from apo.contact import contact_points
-
     dof = analyze(contact_points(state))
     elements: list[dict[str, Any]] = [
         {
@@ -110,11 +145,16 @@ def run(args: argparse.Namespace) -> int:
     ]
     dof_dict = dof_result_to_dict(dof)
     if args.json:
-        out = {"frame": "environment", "units": args.units, "elements": elements}
+        out = {
+            "frame": "environment",
+            "units": args.units,
+            "threshold": threshold / unit,
+            "elements": elements,
+        }
         out.update(dof_dict)
         print(json.dumps(out, indent=2))
         return 0
-    print(f"frame: environment, units: {args.units}")
+    print(f"frame: environment, units: {args.units}, threshold: {threshold / unit:.6g}")
     print(f"{len(elements)} contact element(s){' (singular state)' if state.singular else ''}")
     for el in elements:
         g = f"{el['grasped'][0]}{el['grasped'][1]}"
@@ -123,11 +163,11 @@ def run(args: argparse.Namespace) -> int:
         nr = "; ".join(" ".join(f"{x:+.3f}" for x in n) for n in el["normals"])
         print(f"  {el['kind']:2s} G:{g:5s} E:{e:5s} point ({pt})  normals [{nr}]")
     f = dof.fig25
+    label = "singular M D C" if dof.singular else "M D C"
     print(
-        f"translation M D C: {f[0]} {f[1]} {f[2]}   rotation M D C: {f[3]} {f[4]} {f[5]}   "
+        f"translation {label}: {f[0]} {f[1]} {f[2]}   rotation {label}: {f[3]} {f[4]} {f[5]}   "
         f"restraining t r: {f[6]} {f[7]}"
     )
     for key in ("singular", "translation", "rotation", "all", "singular_dof", "restraining"):
-        if key in dof_dict:
-            print(f"{key}: {json.dumps(dof_dict[key])}")
+        print(f"{key}: {json.dumps(dof_dict[key])}")
     return 0
