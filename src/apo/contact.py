@@ -152,6 +152,13 @@ _CODE = {"v": 0, "e": 1, "f": 2}
 _NAME = ("v", "e", "f")
 # Models with more (query points x primitives) than this use the k-d trees.
 _DENSE_LIMIT = 40_000
+# A batch of frames may use this many times more for the dense all-pairs tests.
+_BATCH_DENSE_FACTOR = 8
+# Frames per batch: about this many vertices and edges of both models over the batch.
+_BATCH_PRIMITIVES = 16_384
+_EMPTY_I = np.zeros(0, dtype=np.int64)
+_EMPTY_F = np.zeros(0, dtype=np.float64)
+_EMPTY_3 = np.zeros((0, 3), dtype=np.float64)
 
 
 # --------------------------------------------------------------------------------------------
@@ -168,6 +175,37 @@ def _check_pose(X: npt.ArrayLike) -> FloatArray:
     R = M[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
         raise ValueError("X_EG's rotation part is not a rotation matrix")
+    return M
+
+
+def _check_poses(X_seq: Iterable[npt.ArrayLike] | npt.ArrayLike) -> FloatArray:
+    """Validate poses as :func:`_check_pose` does, vectorised; returns shape (N, 4, 4)."""
+    if isinstance(X_seq, np.ndarray) and X_seq.ndim == 3:
+        M = np.asarray(X_seq, dtype=np.float64)
+    else:
+        items = list(X_seq)  # type: ignore[arg-type]
+        if not items:
+            return np.zeros((0, 4, 4))
+        try:
+            M = np.asarray(items, dtype=np.float64)
+        except ValueError:
+            M = np.zeros((0,))
+    ok = M.ndim == 3 and M.shape[1:] == (4, 4)
+    if ok:
+        R = M[:, :3, :3]
+        good = np.all(np.isfinite(M), axis=(1, 2))
+        RRt = np.einsum("nij,nkj->nik", R, R)
+        with np.errstate(invalid="ignore"):
+            good &= np.all(np.isclose(RRt, np.eye(3), atol=1e-6), axis=(1, 2))
+            good &= np.linalg.det(np.where(np.isfinite(R), R, 0.0)) > 0
+        ok = bool(good.all())
+    if not ok:  # find the culprit and say what is wrong with it
+        for k, X in enumerate(M if M.ndim == 3 else list(X_seq)):  # type: ignore[arg-type]
+            try:
+                _check_pose(X)
+            except ValueError as exc:
+                raise ValueError(f"pose {k}: {exc}") from None
+        raise ValueError(f"X_EG_seq must have shape (N, 4, 4), got shape {M.shape}")
     return M
 
 
@@ -227,6 +265,72 @@ class _Cone:
     lin: FloatArray
     rays: FloatArray
     normals: FloatArray  # outward unit normals of the piece's faces
+
+
+def _csr(arrays: Sequence[FloatArray]) -> tuple[IntArray, IntArray, FloatArray]:
+    """Row counts, row pointers and stacked rows of a list of (k, 3) arrays."""
+    n = np.fromiter((len(a) for a in arrays), dtype=np.int64, count=len(arrays))
+    ptr = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64) if len(n) else _EMPTY_I
+    flat = np.concatenate([np.reshape(a, (-1, 3)) for a in arrays]) if len(n) else _EMPTY_3
+    return n, ptr, np.asarray(flat, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class _Pieces:
+    """Convex pieces of a model's local solids as flat arrays, for tests vectorised over pieces.
+
+    Piece ``p`` has refined feature ``(kind[p], index[p])`` (kind codes v 0, e 1, f 2), and its
+    lineality rows, rays and face normals (model frame) are the rows ``ptr[p] : ptr[p] + n[p]``
+    of ``lin``, ``rays`` and ``normals``.
+    """
+
+    kind: IntArray
+    index: IntArray
+    nlin: IntArray
+    lin_ptr: IntArray
+    lin: FloatArray
+    nrays: IntArray
+    ray_ptr: IntArray
+    rays: FloatArray
+    nnorm: IntArray
+    norm_ptr: IntArray
+    normals: FloatArray
+
+    @staticmethod
+    def empty() -> _Pieces:
+        """No pieces."""
+        i, x = _EMPTY_I, _EMPTY_3
+        return _Pieces(i, i, i, i, x, i, i, x, i, i, x)
+
+    def extended(self, cones: Sequence[_Cone]) -> _Pieces:
+        """Return these pieces followed by ``cones``."""
+        if not cones:
+            return self
+        kind = np.array([_CODE[c.feature[0]] for c in cones], dtype=np.int64)
+        index = np.array([c.feature[1] for c in cones], dtype=np.int64)
+        parts = []
+        for name, new in (
+            ("lin", [c.lin for c in cones]),
+            ("rays", [c.rays for c in cones]),
+            ("normals", [c.normals for c in cones]),
+        ):
+            n, ptr, flat = _csr(new)
+            old_flat: FloatArray = getattr(self, name)
+            parts += [n, ptr + len(old_flat), flat]
+        cat = np.concatenate
+        return _Pieces(
+            cat([self.kind, kind]),
+            cat([self.index, index]),
+            cat([self.nlin, parts[0]]),
+            cat([self.lin_ptr, parts[1]]),
+            cat([self.lin, parts[2]]),
+            cat([self.nrays, parts[3]]),
+            cat([self.ray_ptr, parts[4]]),
+            cat([self.rays, parts[5]]),
+            cat([self.nnorm, parts[6]]),
+            cat([self.norm_ptr, parts[7]]),
+            cat([self.normals, parts[8]]),
+        )
 
 
 def _cross3(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -317,6 +421,8 @@ class _ModelData:
         self.E0 = V[self.edges[:, 0]]
         self.E1 = V[self.edges[:, 1]]
         self.edge_dir = np.asarray(poly.edge_directions, dtype=np.float64)
+        self.E_mid = 0.5 * (self.E0 + self.E1)
+        self.E_half = 0.5 * np.linalg.norm(self.E1 - self.E0, axis=1)
         tri = np.concatenate(poly.face_triangles).astype(np.int64)
         self.tri_face = np.repeat(
             np.arange(self.nf, dtype=np.int64), [len(t) for t in poly.face_triangles]
@@ -346,6 +452,19 @@ class _ModelData:
         self._trees = None
         self._cones: dict[Feature, list[_Cone]] = {}
         self.edge_samples: tuple[FloatArray, IntArray, float] | None = None
+        # Primitive codes (v: i, e: nv + i, f: nv + ne + i) -> Feature, and the convex pieces
+        # of each primitive's local solid as flat arrays (filled on demand).
+        self.n_all = self.nv + self.ne + self.nf
+        self.offset = np.array([0, self.nv, self.nv + self.ne], dtype=np.int64)
+        self.features: list[Feature] = [
+            *(("v", i) for i in range(self.nv)),
+            *(("e", i) for i in range(self.ne)),
+            *(("f", i) for i in range(self.nf)),
+        ]
+        self._piece_start = np.full(self.n_all, -1, dtype=np.int64)
+        self._piece_count = np.zeros(self.n_all, dtype=np.int64)
+        self.piece_list: list[_Cone] = []
+        self.pieces = _Pieces.empty()
 
     @property
     def poly(self) -> Polyhedron:
@@ -377,6 +496,21 @@ class _ModelData:
         return self._trees
 
     # -- convex pieces of the local solid ----------------------------------------------------
+    def piece_ranges(self, codes: IntArray) -> tuple[IntArray, IntArray]:
+        """First piece id and number of pieces of each primitive code (computed on demand)."""
+        start = self._piece_start[codes]
+        if np.any(start < 0):
+            new: list[_Cone] = []
+            for c in np.unique(codes[start < 0]).tolist():
+                cones = self.cones(self.features[c])
+                self._piece_start[c] = len(self.piece_list) + len(new)
+                self._piece_count[c] = len(cones)
+                new.extend(cones)
+            self.piece_list.extend(new)
+            self.pieces = self.pieces.extended(new)
+            start = self._piece_start[codes]
+        return start, self._piece_count[codes]
+
     def cones(self, feat: Feature) -> list[_Cone]:
         got = self._cones.get(feat)
         if got is not None:
@@ -514,10 +648,6 @@ class _Near:
     f: tuple[IntArray, IntArray, FloatArray]
 
 
-_EMPTY_I = np.zeros(0, dtype=np.int64)
-_EMPTY_F = np.zeros(0, dtype=np.float64)
-
-
 def _pairs_from_ball(lists: Any, rows: IntArray) -> tuple[IntArray, IntArray]:
     counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
     if counts.sum() == 0:
@@ -527,8 +657,19 @@ def _pairs_from_ball(lists: Any, rows: IntArray) -> tuple[IntArray, IntArray]:
     return i, j
 
 
-def _near_features(md: _ModelData, pts: FloatArray, d: float, *, naive: bool = False) -> _Near:
-    """Features of ``md`` within ``d`` of each point of ``pts`` (points in md's frame)."""
+def _near_features(
+    md: _ModelData,
+    pts: FloatArray,
+    d: float,
+    *,
+    naive: bool = False,
+    dense_limit: int | None = None,
+) -> _Near:
+    """Features of ``md`` within ``d`` of each point of ``pts`` (points in md's frame).
+
+    Pairs of each kind are sorted by (point, feature). All pairs are tested when there are
+    at most ``dense_limit`` (default ``_DENSE_LIMIT``) of them, else the k-d trees prune.
+    """
     if naive:
         return _near_features_naive(md, pts, d)
     inside = np.all((pts >= md.lo - d) & (pts <= md.hi + d), axis=1)
@@ -537,7 +678,8 @@ def _near_features(md: _ModelData, pts: FloatArray, d: float, *, naive: bool = F
         e3 = (_EMPTY_I, _EMPTY_I, _EMPTY_F)
         return _Near(e3, e3, e3)
     Q = pts[rows]
-    dense = len(Q) * max(md.nv, len(md.TA)) <= _DENSE_LIMIT
+    limit = _DENSE_LIMIT if dense_limit is None else dense_limit
+    dense = len(Q) * max(md.nv, len(md.TA)) <= limit
     # vertices
     if dense:
         dvv = np.linalg.norm(Q[:, None, :] - md.V[None, :, :], axis=2)
@@ -548,9 +690,10 @@ def _near_features(md: _ModelData, pts: FloatArray, d: float, *, naive: bool = F
         i, j = _pairs_from_ball(tv.query_ball_point(Q, d), np.arange(len(Q)))
         dist = np.linalg.norm(Q[i] - md.V[j], axis=1)
         vv = (rows[i], j, dist)
-    # edges
+    # edges (dense: pre-filtered by the edges' bounding spheres)
     if dense:
-        ii, jj = np.nonzero(np.ones((len(Q), md.ne), dtype=bool))
+        gap = np.linalg.norm(Q[:, None, :] - md.E_mid[None, :, :], axis=2)
+        ii, jj = np.nonzero(gap <= (md.E_half + d) * (1.0 + 1e-9))
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
         i, s = _pairs_from_ball(te.query_ball_point(Q, d + er), np.arange(len(Q)))
@@ -604,21 +747,6 @@ def _near_features_naive(md: _ModelData, pts: FloatArray, d: float) -> _Near:
     ii, jj = np.nonzero(df <= d)
     ff = (ii.astype(np.int64), jj.astype(np.int64), df[ii, jj])
     return _Near(vv, ee, ff)
-
-
-def _snap(near: _Near, n_points: int) -> dict[int, Feature]:
-    """Lowest-dimensional (then nearest) feature within the threshold for each point."""
-    out: dict[int, Feature] = {}
-    for kind in ("f", "e", "v"):  # later kinds overwrite: vertex wins over edge over face
-        i, j, dist = getattr(near, kind)
-        if len(i) == 0:
-            continue
-        order = np.lexsort((dist, i))
-        i, j = i[order], j[order]
-        first = np.concatenate([[True], i[1:] != i[:-1]])
-        for a, b in zip(i[first].tolist(), j[first].tolist(), strict=True):
-            out[a] = (kind, b)
-    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -740,25 +868,70 @@ def _snap_rays(
     return out
 
 
-def _arc_rays_batch(
-    pairs: list[tuple[_Cone, _Cone]], R: FloatArray, sin_tol: float, merge_angle: float
-) -> list[FloatArray]:
-    """Vectorised rank-1 case of :func:`_separating_rays` for (edge, vertex) piece pairs.
+def _expand(ptr: IntArray, cnt: IntArray) -> tuple[IntArray, IntArray, IntArray]:
+    """Entries of CSR rows ``ptr[k] : ptr[k] + cnt[k]``: (row k, flat index, slot in row)."""
+    total = int(cnt.sum())
+    rep = np.repeat(np.arange(len(cnt), dtype=np.int64), cnt)
+    slot = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    return rep, ptr[rep] + slot, slot
 
-    Each pair has exactly one lineality direction (an edge on one side, a pointed cone on
-    the other). Same result as the scalar code up to rounding; rays are then snapped.
+
+def _padded(flat: FloatArray, ptr: IntArray, cnt: IntArray) -> FloatArray:
+    """CSR rows as a zero-padded array (n, max(cnt), 3)."""
+    out = np.zeros((len(cnt), max(int(cnt.max(initial=0)), 1), 3))
+    rep, idx, slot = _expand(ptr, cnt)
+    out[rep, slot] = flat[idx]
+    return out
+
+
+def _rotate(R: FloatArray, v: FloatArray) -> FloatArray:
+    """``R[k] @ v[k]`` for each k."""
+    return np.asarray(np.einsum("kij,kj->ki", R, v), dtype=np.float64)
+
+
+def _ineq_rows(
+    PG: _Pieces, PE: _Pieces, pg: IntArray, pe: IntArray, R: FloatArray
+) -> tuple[FloatArray, BoolArray]:
+    """Rows ``[R[k] @ G's rays; -E's rays]`` of each pair of pieces, zero-padded, in E.
+
+    Returns the rows (n, mg + me, 3), G's in slots ``0 : mg`` and E's from slot ``mg`` (mg,
+    me the largest counts), and which slots are E's, shape (mg + me,). Rows keep the order
+    of the scalar code, G's then E's.
     """
-    n = len(pairs)
-    m_max = max(len(cg.rays) + len(ce.rays) for cg, ce in pairs)
-    rows = np.zeros((n, m_max, 3))
-    from_e = np.zeros((n, m_max), dtype=bool)
-    axis = np.empty((n, 3))
-    for p, (cg, ce) in enumerate(pairs):
-        kg, ke = len(cg.rays), len(ce.rays)
-        rows[p, :kg] = cg.rays @ R.T
-        rows[p, kg : kg + ke] = -ce.rays
-        from_e[p, kg : kg + ke] = True
-        axis[p] = ce.lin[0] if len(ce.lin) else R @ cg.lin[0]
+    kg, ke = PG.nrays[pg], PE.nrays[pe]
+    mg = int(kg.max(initial=0))
+    m = max(mg + int(ke.max(initial=0)), 1)
+    rows = np.zeros((len(pg), m, 3))
+    rep, idx, slot = _expand(PG.ray_ptr[pg], kg)
+    rows[rep, slot] = _rotate(R[rep], PG.rays[idx])
+    rep, idx, slot = _expand(PE.ray_ptr[pe], ke)
+    rows[rep, mg + slot] = -PE.rays[idx]
+    return rows, np.arange(m) >= mg
+
+
+def _arc_rays_batch(
+    PG: _Pieces,
+    PE: _Pieces,
+    pg: IntArray,
+    pe: IntArray,
+    R: FloatArray,
+    sin_tol: float,
+    merge_angle: float,
+) -> tuple[IntArray, FloatArray]:
+    """Vectorised rank-1 case of :func:`_separating_rays` and :func:`_snap_rays`.
+
+    Each pair (G piece ``pg[k]`` at rotation ``R[k]``, E piece ``pe[k]``) has exactly one
+    lineality direction (an edge on one side, a pointed cone on the other). Same result as
+    the scalar code up to rounding. Returns the number of rays (0, 1 or 2) of each pair and
+    the rays, shape (n, 2, 3), in E.
+    """
+    n = len(pg)
+    rows, from_e = _ineq_rows(PG, PE, pg, pe, R)
+    m_max = rows.shape[1]
+    axis = np.zeros((n, 3))
+    has_e = PE.nlin[pe] == 1
+    axis[has_e] = PE.lin[PE.lin_ptr[pe[has_e]]]
+    axis[~has_e] = _rotate(R[~has_e], PG.lin[PG.lin_ptr[pg[~has_e]]])
     # Plane bases, as _plane_basis.
     x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
     near_x = np.abs(x) >= 0.9
@@ -776,7 +949,7 @@ def _arc_rays_batch(
         perp = np.stack([-A2[:, :, 1], A2[:, :, 0]], axis=2) / np.where(valid, nr, 1.0)[:, :, None]
     cand = np.stack([perp, -perp], axis=2).reshape(n, 2 * m_max, 2)  # row0+, row0-, ...
     c_valid = np.repeat(valid, 2, axis=1)
-    c_prio = np.repeat(from_e, 2, axis=1)
+    c_prio = np.repeat(np.broadcast_to(from_e, valid.shape), 2, axis=1)
     ok = c_valid & np.all(np.einsum("pck,pmk->pcm", cand, A2) >= -sin_tol, axis=2)
     mean = np.einsum("pck,pc->pk", cand, ok.astype(np.float64))
     nm = np.linalg.norm(mean, axis=1)
@@ -798,13 +971,135 @@ def _arc_rays_batch(
     both = lo + hi
     both /= np.maximum(np.linalg.norm(both, axis=1), 1e-300)[:, None]
     one = np.where(okp.any(axis=1)[:, None], pick, both)
-    out: list[FloatArray] = []
-    for p, (cg, ce) in enumerate(pairs):
-        if not good[p]:
-            out.append(np.zeros((0, 3)))
-            continue
-        r2 = one[p][None, :] if collapsed[p] else np.stack([lo[p], hi[p]])
-        out.append(_snap_rays(r2 @ Q[p], cg, ce, R, merge_angle))
+    r2 = np.where(collapsed[:, None, None], one[:, None, :], np.stack([lo, hi], axis=1))
+    rays = np.einsum("pak,pkj->paj", r2, Q)  # (n, 2, 3)
+    count = np.where(good, np.where(collapsed, 1, 2), 0).astype(np.int64)
+    return _snap_batch(PG, PE, pg, pe, R, rays, count, merge_angle)
+
+
+def _snap_batch(
+    PG: _Pieces,
+    PE: _Pieces,
+    pg: IntArray,
+    pe: IntArray,
+    R: FloatArray,
+    rays: FloatArray,
+    count: IntArray,
+    merge_angle: float,
+) -> tuple[IntArray, FloatArray]:
+    """Vectorised :func:`_snap_rays` of up to two rays (n, 2, 3) per pair of pieces.
+
+    Each ray within ``merge_angle`` of an exact face normal of the pieces becomes that normal:
+    E's normals first, then minus G's (rotated by ``R[k]``). Two rays of which one snapped
+    are then merged if equal and normalised, as :func:`_dedupe` with a zero angle does.
+    """
+    n = len(pg)
+    cos_m = math.cos(merge_angle)
+    in_ray = np.arange(2)[None, :] < count[:, None]  # (n, 2)
+    NE = _padded(PE.normals, PE.norm_ptr[pe], PE.nnorm[pe])
+    NG = -_padded(PG.normals, PG.norm_ptr[pg], PG.nnorm[pg])
+    NG = np.einsum("kij,kmj->kmi", R, NG)
+    out = rays.copy()
+    snapped = np.zeros((n, 2), dtype=bool)
+    ar = np.arange(n)[:, None]
+    for N, cnt in ((NG, PG.nnorm[pg]), (NE, PE.nnorm[pe])):  # E last: it wins
+        dots = np.einsum("paj,pkj->pak", rays, N)
+        dots = np.where(np.arange(N.shape[1])[None, None, :] < cnt[:, None, None], dots, -np.inf)
+        best = np.argmax(dots, axis=2)  # (n, 2)
+        hit = in_ray & (np.take_along_axis(dots, best[:, :, None], axis=2)[:, :, 0] >= cos_m)
+        out = np.where(hit[:, :, None], N[ar, best], out)
+        snapped |= hit
+    count = count.copy()
+    two = np.flatnonzero((count == 2) & snapped.any(axis=1))
+    if len(two):
+        # _dedupe(rays, 1e-9): the second ray joins the first iff r0 . r1 >= cos(1e-9)
+        r0, r1 = out[two, 0], out[two, 1]
+        same = _dot(r0, r1) >= math.cos(1e-9)
+        m = r0 + r1
+        out[two, 0] = np.where(
+            same[:, None],
+            m / np.linalg.norm(m, axis=1)[:, None],
+            r0 / np.linalg.norm(r0, axis=1)[:, None],
+        )
+        out[two, 1] = r1 / np.linalg.norm(r1, axis=1)[:, None]
+        count[two[same]] = 1
+    return count, out
+
+
+def _edge_edge_rays_batch(
+    PG: _Pieces,
+    PE: _Pieces,
+    pg: IntArray,
+    pe: IntArray,
+    R: FloatArray,
+    sin_tol: float,
+    merge_angle: float,
+) -> tuple[IntArray, FloatArray, BoolArray]:
+    """Vectorised rank-2 case of :func:`_separating_rays` for pairs of edge pieces.
+
+    Each pair has one lineality direction on each side (non-parallel edges): the only
+    candidate normals are ``+-u``, ``u`` the unit common normal. Pairs whose lines are within
+    ``acos(0.999)`` of parallel, or nearly parallel within ``sin_tol``, are not solved here
+    (third result False): the scalar code handles them.
+    """
+    n = len(pg)
+    l0 = _rotate(R, PG.lin[PG.lin_ptr[pg]])
+    l1 = PE.lin[PE.lin_ptr[pe]]
+    u = np.cross(l0, l1)
+    nu = np.sqrt(_dot(u, u))
+    solved = (np.abs(_dot(l0, l1)) < 0.999) & (nu > sin_tol)
+    u = u / np.where(solved, nu, 1.0)[:, None]
+    # min and max of ineq . u over G's rays (rotated) and minus E's rays
+    lo = np.full(n, np.inf)
+    hi = np.full(n, -np.inf)
+    for P, pk, sign, rot in ((PG, pg, 1.0, True), (PE, pe, -1.0, False)):
+        j, idx, _ = _expand(P.ray_ptr[pk], P.nrays[pk])
+        v = _rotate(R[j], P.rays[idx]) if rot else P.rays[idx]
+        dots = sign * _dot(v, u[j])
+        np.minimum.at(lo, j, dots)
+        np.maximum.at(hi, j, dots)
+    m_plus = np.where(np.isfinite(lo), lo, 0.0)  # no rows: min over nothing is 0
+    m_minus = np.where(np.isfinite(hi), -hi, 0.0)
+    ok_plus = m_plus >= -sin_tol
+    ok_minus = (m_minus >= -sin_tol) & (~ok_plus | (m_minus > m_plus))
+    count = (ok_plus | ok_minus).astype(np.int64)
+    rays = np.zeros((n, 2, 3))
+    rays[:, 0] = np.where(ok_minus[:, None], -u, u)
+    count, rays = _snap_batch(PG, PE, pg, pe, R, rays, count, merge_angle)
+    return np.where(solved, count, 0), rays, solved
+
+
+def _pointed_rays_batch(
+    PG: _Pieces,
+    PE: _Pieces,
+    pg: IntArray,
+    pe: IntArray,
+    R: FloatArray,
+    sin_tol: float,
+    merge_angle: float,
+) -> list[FloatArray]:
+    """Vectorised rank-0 case of :func:`_separating_rays`: both pieces pointed (no lineality).
+
+    The candidate rays (cross products of pairs of rows, both signs, kept when on the right
+    side of every row) are found for all pairs at once; the greedy merge (:func:`_dedupe`)
+    and the snapping (:func:`_snap_rays`) of each pair's few candidates are the scalar ones.
+    Returns the rays of each pair before snapping, in E.
+    """
+    n = len(pg)
+    rows, from_e_b = _ineq_rows(PG, PE, pg, pe, R)
+    from_e = from_e_b.astype(np.int64)
+    iu, ju = np.triu_indices(rows.shape[1], 1)  # padding rows are zero: crosses dropped
+    cr = np.cross(rows[:, iu], rows[:, ju])
+    nc = np.linalg.norm(cr, axis=2)
+    keep = nc > sin_tol
+    cr = cr / np.where(keep, nc, 1.0)[:, :, None]
+    prio = np.tile(from_e[iu] + from_e[ju], 2)
+    cr = np.concatenate([cr, -cr], axis=1)
+    ok = np.tile(keep, 2) & np.all(np.einsum("npk,nmk->npm", cr, rows) >= -sin_tol, axis=2)
+    out = []
+    for i in range(n):
+        sel = ok[i]
+        out.append(_dedupe(cr[i][sel], merge_angle, prio[sel]) if sel.any() else _EMPTY_3)
     return out
 
 
@@ -888,292 +1183,515 @@ class ContactFinder:
 
     def find(self, X_EG: npt.ArrayLike) -> ContactState:
         """Contact state at pose ``X_EG`` (4x4, pose of G in E's frame, metres)."""
-        return self._find(_check_pose(X_EG), naive=False)
+        return self._find_frames(_check_pose(X_EG)[None], naive=False)[0]
 
-    def find_batch(self, X_EG_seq: Iterable[npt.ArrayLike]) -> list[ContactState]:
-        """Contact states at each pose of ``X_EG_seq`` (each 4x4, metres)."""
-        return [self._find(_check_pose(X), naive=False) for X in X_EG_seq]
+    def find_batch(self, X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike) -> list[ContactState]:
+        """Contact states at each pose of ``X_EG_seq``, vectorised over the poses.
+
+        Parameters
+        ----------
+        X_EG_seq : array_like, shape (N, 4, 4), or iterable of array_like, shape (4, 4)
+            Poses of G in E's frame, metres.
+
+        Returns
+        -------
+        list of ContactState
+            One per pose, equal to :meth:`find` at that pose (up to rounding of the points
+            and normals). Small models are processed in blocks of frames (each stage is one
+            numpy pass over the block); large ones a few frames at a time.
+
+        Raises
+        ------
+        ValueError
+            A pose is not a finite 4x4 rigid transform (the message gives its index).
+        """
+        X = _check_poses(X_EG_seq)
+        g, e = self._g, self._e
+        step = max(1, _BATCH_PRIMITIVES // (g.nv + e.nv + g.ne))
+        out: list[ContactState] = []
+        for a in range(0, len(X), step):
+            out.extend(self._find_frames(X[a : a + step], naive=False))
+        return out
 
     def find_naive(self, X_EG: npt.ArrayLike) -> ContactState:
         """Find the state as :meth:`find` does, by an all-pairs search (reference)."""
-        return self._find(_check_pose(X_EG), naive=True)
+        return self._find_frames(_check_pose(X_EG)[None], naive=True)[0]
 
     # ---------------------------------------------------------------------------------------
-    def _find(self, X: FloatArray, *, naive: bool) -> ContactState:
+    def _find_frames(self, X: FloatArray, *, naive: bool) -> list[ContactState]:
+        """Contact states at poses ``X`` (F, 4, 4); every stage is vectorised over frames."""
         g, e, d = self._g, self._e, self.threshold
-        R, t = X[:3, :3], X[:3, 3]
+        n_frames = len(X)
+        empty = ContactState((), frozenset())
+        R_all, t_all = X[:, :3, :3], X[:, :3, 3]
         # Broad phase: bounding boxes (G's box transformed conservatively).
-        if not naive:
+        if naive:
+            active = np.arange(n_frames)
+        else:
             c = 0.5 * (g.lo + g.hi)
             r = 0.5 * (g.hi - g.lo)
-            cE = R @ c + t
-            rE = np.abs(R) @ r
-            if np.any(cE - rE > e.hi + d) or np.any(cE + rE < e.lo - d):
-                return ContactState((), frozenset())
-        VG = g.V @ R.T + t  # G's vertices in E
-        VE_G = (e.V - t) @ R  # E's vertices in G
-        near_g = _near_features(e, VG, d, naive=naive)  # G vertex i vs E features
-        near_e = _near_features(g, VE_G, d, naive=naive)  # E vertex i vs G features
-        ee = self._edge_pairs(VG, R, t, d, naive=naive)
-        touching = self._touching(near_g, near_e, ee[0], ee[1])
+            cE = np.einsum("fij,j->fi", R_all, c) + t_all
+            rE = np.einsum("fij,j->fi", np.abs(R_all), r)
+            apart = np.any(cE - rE > e.hi + d, axis=1) | np.any(cE + rE < e.lo - d, axis=1)
+            active = np.flatnonzero(~apart)
+        states = [empty] * n_frames
+        if len(active) == 0:
+            return states
+        R, t = R_all[active], t_all[active]
+        n_act = len(active)
+        limit = _DENSE_LIMIT * (_BATCH_DENSE_FACTOR if n_act > 1 else 1)
+        VG = np.einsum("fij,vj->fvi", R, g.V) + t[:, None, :]  # G's vertices in E
+        VE_G = np.einsum("fji,fvj->fvi", R, e.V[None, :, :] - t[:, None, :])  # E's in G
+        near_g = _by_frame(
+            _near_features(e, VG.reshape(-1, 3), d, naive=naive, dense_limit=limit), g.nv
+        )
+        near_e = _by_frame(
+            _near_features(g, VE_G.reshape(-1, 3), d, naive=naive, dense_limit=limit), e.nv
+        )
+        ee = self._edge_pairs(VG, R, t, d, naive=naive, limit=limit)
+        touching = self._touching(near_g, near_e, ee, n_act)
 
-        # Candidates: (G snapped feature, E snapped feature).
-        cands: dict[tuple[Feature, Feature], None] = {}
-        for i, feat in _snap(near_g, g.nv).items():
-            cands[(("v", i), feat)] = None
-        for i, feat in _snap(near_e, e.nv).items():
-            cands[(feat, ("v", i))] = None
-        for ea, eb in self._ee_candidates(ee, near_g, near_e, R):
-            cands[(("e", ea), ("e", eb))] = None
+        # Candidates (G snapped feature, E snapped feature), in the order of the scalar search:
+        # G's vertices, E's vertices, then edge pairs; duplicates dropped.
+        sg, se = _snap(near_g), _snap(near_e)
+        keep = self._ee_candidates(ee, near_g, near_e, R)
+        ef_, ea_, eb_ = ee[0][keep], ee[1][keep], ee[2][keep]
+        cat = np.concatenate
+        fr = cat([sg[0], se[0], ef_])
+        gkind = cat([np.zeros_like(sg[1]), se[2], np.ones_like(ea_)])
+        gcode = cat([sg[1], g.offset[se[2]] + se[3], g.nv + ea_])
+        ekind = cat([sg[2], np.zeros_like(se[1]), np.ones_like(eb_)])
+        ecode = cat([e.offset[sg[2]] + sg[3], se[1], e.nv + eb_])
+        src = cat([np.zeros_like(sg[1]), np.ones_like(se[1]), np.full_like(ea_, 2)])
+        grp = cat([sg[4], se[4], np.zeros_like(ea_)])
+        pos = cat([sg[1], se[1], ea_ * e.ne + eb_])
+        order = np.lexsort((pos, grp, src, fr))
+        code = (fr[order] * g.n_all + gcode[order]) * e.n_all + ecode[order]
+        _, first = np.unique(code, return_index=True)
+        order = order[np.sort(first)]
+        fr, gkind, gcode, ekind, ecode = (
+            fr[order],
+            gkind[order],
+            gcode[order],
+            ekind[order],
+            ecode[order],
+        )
 
-        sin_tol = math.sin(self.angle_tol)
-        merge = 3.0 * self.angle_tol
-        found: dict[tuple[str, Feature, Feature], tuple[ContactKind, list[FloatArray]]] = {}
-        self._batch_vertex_face(cands, found, R, sin_tol)
-        work = [(gf, ef, cg, ce) for gf, ef in cands for cg in g.cones(gf) for ce in e.cones(ef)]
-        arc = [
-            i
-            for i, (_, _, cg, ce) in enumerate(work)
-            if not naive and len(cg.lin) + len(ce.lin) == 1
+        # Work items: every pair of convex pieces of the two snapped features.
+        gs, gc = g.piece_ranges(gcode)
+        es, ec = e.piece_ranges(ecode)
+        n = gc * ec
+        rep = np.repeat(np.arange(len(n)), n)
+        o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        pg = gs[rep] + o // ec[rep]
+        pe = es[rep] + o % ec[rep]
+        wfr = fr[rep]
+        count, rays, extra = self._cone_pairs(pg, pe, R[wfr], naive=naive)
+
+        # Element kind from the refined features (a vertex candidate keeps its vertex).
+        PG, PE = g.pieces, e.pieces
+        fa_k, fa_i = PG.kind[pg].copy(), PG.index[pg].copy()
+        fb_k, fb_i = PE.kind[pe].copy(), PE.index[pe].copy()
+        kind = _KIND_TABLE[fa_k, fb_k]
+        m = (kind < 0) & (gkind[rep] == 0)
+        fa_k[m], fa_i[m] = 0, gcode[rep][m]
+        kind[m] = _KIND_TABLE[fa_k[m], fb_k[m]]
+        m = (kind < 0) & (ekind[rep] == 0)
+        fb_k[m], fb_i[m] = 0, ecode[rep][m]
+        kind[m] = _KIND_TABLE[fa_k[m], fb_k[m]]
+        w = np.flatnonzero((kind >= 0) & (count > 0))
+        # Elements sorted by frame, then key (kind value, G feature, E feature); the items of
+        # one element in work order.
+        w = w[
+            np.lexsort(
+                (
+                    w,
+                    fb_i[w],
+                    _FEATURE_RANK[fb_k[w]],
+                    fa_i[w],
+                    _FEATURE_RANK[fa_k[w]],
+                    _KIND_RANK[kind[w]],
+                    wfr[w],
+                )
+            )
         ]
-        batch = _arc_rays_batch([work[i][2:] for i in arc], R, sin_tol, merge) if arc else []
-        arc_rays = dict(zip(arc, batch, strict=True))
-        for i, (gf, ef, cg, ce) in enumerate(work):
-            rays = arc_rays.get(i)
-            if rays is None:
-                rays = _cone_pair_rays(cg, ce, R, sin_tol, merge)
-            if len(rays) == 0:
-                continue
-            fa, fb = cg.feature, ce.feature
-            kind = _KINDS.get((fa[0], fb[0]))
-            if kind is None and gf[0] == "v":
-                fa = gf
-                kind = _KINDS.get((fa[0], fb[0]))
-            if kind is None and ef[0] == "v":
-                fb = ef
-                kind = _KINDS.get((fa[0], fb[0]))
-            if kind is None:
-                continue
-            k = (kind.value, fa, fb)
-            if k in found:
-                found[k][1].append(rays)
+        if len(w) == 0:
+            for k, f in enumerate(active.tolist()):
+                states[f] = ContactState((), touching[k])
+            return states
+        cols = np.stack([wfr[w], kind[w], fa_k[w], fa_i[w], fb_k[w], fb_i[w]])
+        new = np.concatenate([[True], np.any(cols[:, 1:] != cols[:, :-1], axis=0)])
+        starts = np.flatnonzero(new)
+        ends = np.append(starts[1:], len(w))
+        el_fr, el_kind = wfr[w[starts]], kind[w[starts]]
+        el_a, el_b = fa_i[w[starts]], fb_i[w[starts]]
+        points = self._points(el_fr, el_kind, el_a, el_b, R, t, VG)
+        merge = 3.0 * self.angle_tol
+        ga_code = g.offset[fa_k[w[starts]]] + el_a
+        eb_code = e.offset[fb_k[w[starts]]] + el_b
+        per_frame: list[list[ContactElement]] = [[] for _ in range(n_act)]
+        gfeat, efeat = g.features, e.features
+        w_list = w.tolist()
+        for s, end, f, k, a, b, p in zip(
+            starts.tolist(),
+            ends.tolist(),
+            el_fr.tolist(),
+            el_kind.tolist(),
+            ga_code.tolist(),
+            eb_code.tolist(),
+            points,
+            strict=True,
+        ):
+            items = w_list[s:end]
+            if len(items) == 1:
+                i = items[0]
+                normals = extra[i] if i in extra else rays[i, : count[i]]
             else:
-                found[k] = (kind, [rays])
-        elements = []
-        for k in sorted(found):
-            kind, ray_list = found[k]
-            rays = ray_list[0] if len(ray_list) == 1 else _dedupe(np.concatenate(ray_list), merge)
-            point = self._point(kind, k[1], k[2], R, t, VG)
-            elements.append(ContactElement(kind, k[1], k[2], point, rays))
-        return ContactState(tuple(elements), touching)
+                normals = _dedupe(
+                    np.concatenate(
+                        [extra[i] if i in extra else rays[i, : count[i]] for i in items]
+                    ),
+                    merge,
+                )
+            per_frame[f].append(ContactElement(_KIND_LIST[k], gfeat[a], efeat[b], p, normals))
+        for k, f in enumerate(active.tolist()):
+            states[f] = ContactState(tuple(per_frame[k]), touching[k])
+        return states
 
-    def _batch_vertex_face(
-        self,
-        cands: dict[tuple[Feature, Feature], None],
-        found: dict[tuple[str, Feature, Feature], tuple[ContactKind, list[FloatArray]]],
-        R: FloatArray,
-        sin_tol: float,
-    ) -> None:
-        """Vectorised VF test for convex G vertices on E faces (removed from ``cands``).
+    def _cone_pairs(
+        self, pg: IntArray, pe: IntArray, R: FloatArray, *, naive: bool
+    ) -> tuple[IntArray, FloatArray, dict[int, FloatArray]]:
+        """Separating normals of each pair of pieces (G piece ``pg[k]`` at ``R[k]``, ``pe[k]``).
 
-        Same result as the general path's fast path: the face normal n is the separating
-        normal iff every edge direction of the vertex's tangent cone has ``d . n >= -sin``.
+        Returns the number of rays of each pair, the rays (n, 2, 3) of the pairs solved
+        vectorised, and the rays of the others (by pair index). The naive search solves every
+        pair with the scalar :func:`_cone_pair_rays`.
         """
         g, e = self._g, self._e
-        simple = [
-            (gf, ef) for gf, ef in cands if gf[0] == "v" and ef[0] == "f" and len(g.cones(gf)) == 1
-        ]
-        if len(simple) < 8:
-            return
-        rays = [g.cones(gf)[0].rays for gf, _ in simple]
-        counts = np.array([len(r) for r in rays], dtype=np.int64)
-        flat = np.concatenate(rays) @ R.T
-        fids = np.array([ef[1] for _, ef in simple], dtype=np.int64)
-        normals = e.poly.face_normals[fids]
-        dots = np.einsum("ij,ij->i", flat, np.repeat(normals, counts, axis=0))
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        ok = np.minimum.reduceat(dots, starts) >= -sin_tol
-        for (gf, ef), good, n in zip(simple, ok.tolist(), normals, strict=True):
-            del cands[(gf, ef)]
-            if good:
-                found[("VF", gf, ef)] = (ContactKind.VF, [n[None, :].copy()])
+        PG, PE = g.pieces, e.pieces
+        sin_tol = math.sin(self.angle_tol)
+        merge = 3.0 * self.angle_tol
+        n = len(pg)
+        count = np.zeros(n, dtype=np.int64)
+        rays = np.zeros((n, 2, 3))
+        extra: dict[int, FloatArray] = {}
+        lg, le = PG.nlin[pg], PE.nlin[pe]
+        if naive:
+            scalar = np.ones(n, dtype=bool)
+        else:
+            half_e = le == 2  # E's piece is a half-space: its outward normal (exact in E)
+            half_g = ~half_e & (lg == 2)  # G's piece is one: minus its outward normal
+            arc = (lg + le) == 1
+            edges = (lg == 1) & (le == 1)
+            pointed = (lg == 0) & (le == 0)
+            scalar = ~(half_e | half_g | arc | edges | pointed)
+            for sel, side in ((half_e, "e"), (half_g, "g")):
+                k = np.flatnonzero(sel)
+                if len(k) == 0:
+                    continue
+                if side == "e":  # G's rays on the normal's side, G's lineality in the plane
+                    nrm = PE.normals[PE.norm_ptr[pe[k]]]
+                    P, pk, sign, rot = PG, pg[k], 1.0, True
+                else:  # E's rays on the other side, E's lineality in the plane
+                    nrm = -_rotate(R[k], PG.normals[PG.norm_ptr[pg[k]]])
+                    P, pk, sign, rot = PE, pe[k], -1.0, False
+                bad = np.zeros(len(k), dtype=bool)
+                j, idx, _ = _expand(P.ray_ptr[pk], P.nrays[pk])
+                v = _rotate(R[k][j], P.rays[idx]) if rot else P.rays[idx]
+                bad[j[sign * _dot(v, nrm[j]) < -sin_tol]] = True
+                j, idx, _ = _expand(P.lin_ptr[pk], P.nlin[pk])
+                v = _rotate(R[k][j], P.lin[idx]) if rot else P.lin[idx]
+                bad[j[np.abs(_dot(v, nrm[j])) > sin_tol]] = True
+                count[k[~bad]] = 1
+                rays[k[~bad], 0] = nrm[~bad]
+            k = np.flatnonzero(arc)
+            if len(k):
+                count[k], rays[k] = _arc_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge)
+            k = np.flatnonzero(edges)
+            if len(k):
+                c, r, solved = _edge_edge_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge)
+                count[k], rays[k] = c, r
+                scalar[k[~solved]] = True
+            k = np.flatnonzero(pointed)
+            if len(k):
+                for i, r in zip(
+                    k.tolist(),
+                    _pointed_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge),
+                    strict=True,
+                ):
+                    if len(r):
+                        r = _snap_rays(
+                            r, g.piece_list[int(pg[i])], e.piece_list[int(pe[i])], R[i], merge
+                        )
+                        count[i] = len(r)
+                        extra[i] = r
+        for i in np.flatnonzero(scalar).tolist():
+            r = _cone_pair_rays(
+                g.piece_list[int(pg[i])], e.piece_list[int(pe[i])], R[i], sin_tol, merge
+            )
+            if len(r):
+                count[i] = len(r)
+                extra[i] = r
+        return count, rays, extra
 
     def _edge_pairs(
-        self, VG: FloatArray, R: FloatArray, t: FloatArray, d: float, *, naive: bool
-    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
-        """(G edge, E edge) pairs within d: ids, distance, and closest points' parameters."""
+        self, VG: FloatArray, R: FloatArray, t: FloatArray, d: float, *, naive: bool, limit: int
+    ) -> tuple[IntArray, IntArray, IntArray]:
+        """(frame, G edge, E edge) of the edge pairs within d, sorted."""
         g, e = self._g, self._e
-        A0, A1 = VG[g.edges[:, 0]], VG[g.edges[:, 1]]
+        A0 = VG[:, g.edges[:, 0]].reshape(-1, 3)
+        A1 = VG[:, g.edges[:, 1]].reshape(-1, 3)
+        n_rows = len(A0)
         if naive:  # every pair, in chunks of about a million pairs
             step = max(1, 1_000_000 // max(e.ne, 1))
             parts = []
-            for a in range(0, g.ne, step):
-                ca = np.repeat(np.arange(a, min(a + step, g.ne), dtype=np.int64), e.ne)
+            for a in range(0, n_rows, step):
+                ca = np.repeat(np.arange(a, min(a + step, n_rows), dtype=np.int64), e.ne)
                 cb = np.tile(np.arange(e.ne, dtype=np.int64), len(ca) // max(e.ne, 1))
                 rr = segment_segment_closest(A0[ca], A1[ca], e.E0[cb], e.E1[cb])
                 m = rr.distance <= d
-                parts.append((ca[m], cb[m], rr.distance[m], rr.s[m], rr.t[m]))
+                parts.append((ca[m], cb[m]))
             if not parts:
-                return _EMPTY_I, _EMPTY_I, _EMPTY_F, _EMPTY_F, _EMPTY_F
-            cat = [np.concatenate(x) for x in zip(*parts, strict=True)]
-            return cat[0], cat[1], cat[2], cat[3], cat[4]
+                return _EMPTY_I, _EMPTY_I, _EMPTY_I
+            ia, ib = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+            return ia // g.ne, ia % g.ne, ib
+        lo = np.minimum(A0, A1) - d
+        hi = np.maximum(A0, A1) + d
+        sel = np.flatnonzero(np.all((hi >= e.lo) & (lo <= e.hi), axis=1))
+        if len(sel) == 0:
+            return _EMPTY_I, _EMPTY_I, _EMPTY_I
+        if len(sel) * e.ne <= 10 * limit:  # box overlaps are cheap
+            eb_lo = np.minimum(e.E0, e.E1)
+            eb_hi = np.maximum(e.E0, e.E1)
+            ov = np.all(
+                (hi[sel, None, :] >= eb_lo[None]) & (lo[sel, None, :] <= eb_hi[None]), axis=2
+            )
+            ia, ib = np.nonzero(ov)
+            ia = sel[ia]
         else:
-            lo = np.minimum(A0, A1) - d
-            hi = np.maximum(A0, A1) + d
-            sel = np.flatnonzero(np.all((hi >= e.lo) & (lo <= e.hi), axis=1))
-            if len(sel) == 0:
-                return _EMPTY_I, _EMPTY_I, _EMPTY_F, _EMPTY_F, _EMPTY_F
-            if len(sel) * e.ne <= 10 * _DENSE_LIMIT:  # box overlaps are cheap
-                eb_lo = np.minimum(e.E0, e.E1)
-                eb_hi = np.maximum(e.E0, e.E1)
-                ov = np.all(
-                    (hi[sel, None, :] >= eb_lo[None]) & (lo[sel, None, :] <= eb_hi[None]), axis=2
-                )
-                ia, ib = np.nonzero(ov)
-                ia = sel[ia]
-            else:
-                _, _, _, _, te, eown, er = e.trees()
-                if g.edge_samples is None:
-                    g.trees()
-                assert g.edge_samples is not None
-                gpts, gown, gr = g.edge_samples
-                pts = gpts @ R.T + t
-                keep = np.isin(gown, sel)
-                pts, gown = pts[keep], gown[keep]
-                i, s = _pairs_from_ball(te.query_ball_point(pts, d + er + gr), gown)
+            _, _, _, _, te, eown, er = e.trees()
+            if g.edge_samples is None:
+                g.trees()
+            assert g.edge_samples is not None
+            gpts, gown, gr = g.edge_samples
+            ias, ibs = [], []
+            for f in np.unique(sel // g.ne).tolist():
+                sel_f = sel[sel // g.ne == f] - f * g.ne
+                keep = np.isin(gown, sel_f)
+                pts = gpts[keep] @ R[f].T + t[f]
+                i, s = _pairs_from_ball(te.query_ball_point(pts, d + er + gr), gown[keep])
                 key = np.unique(i * e.ne + eown[s])
-                ia, ib = key // e.ne, key % e.ne
+                ias.append(key // e.ne + f * g.ne)
+                ibs.append(key % e.ne)
+            ia, ib = np.concatenate(ias), np.concatenate(ibs)
         if len(ia) == 0:
-            return _EMPTY_I, _EMPTY_I, _EMPTY_F, _EMPTY_F, _EMPTY_F
+            return _EMPTY_I, _EMPTY_I, _EMPTY_I
         r = segment_segment_closest(A0[ia], A1[ia], e.E0[ib], e.E1[ib])
         ok = r.distance <= d
-        return (
-            ia[ok].astype(np.int64),
-            ib[ok].astype(np.int64),
-            r.distance[ok],
-            r.s[ok],
-            r.t[ok],
-        )
+        ia, ib = ia[ok].astype(np.int64), ib[ok].astype(np.int64)
+        return ia // g.ne, ia % g.ne, ib
 
     def _ee_candidates(
-        self,
-        ee: tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray],
-        near_g: _Near,
-        near_e: _Near,
-        R: FloatArray,
-    ) -> list[tuple[int, int]]:
-        """Non-parallel edge pairs within d whose endpoints do not touch the other edge."""
-        ia, ib = ee[0], ee[1]
+        self, ee: tuple[IntArray, IntArray, IntArray], near_g: _NearF, near_e: _NearF, R: FloatArray
+    ) -> BoolArray:
+        """Mask of the edge pairs that are non-parallel and whose endpoints touch no edge."""
+        fr, ia, ib = ee
         if len(ia) == 0:
-            return []
+            return np.zeros(0, dtype=bool)
         g, e = self._g, self._e
-        dg = R @ g.edge_dir[ia].T
-        cross = np.linalg.norm(np.cross(dg.T, e.edge_dir[ib]), axis=1)
-        nonpar = cross > math.sin(self.angle_tol)
+        dg = _rotate(R[fr], g.edge_dir[ia])
+        cross = np.linalg.norm(np.cross(dg, e.edge_dir[ib]), axis=1)
+        keep: BoolArray = cross > math.sin(self.angle_tol)
         # Endpoint coverage: G vertex near E edge, E vertex near G edge.
-        gv_e = set(zip(near_g.e[0].tolist(), near_g.e[1].tolist(), strict=True))
-        ev_g = set(zip(near_e.e[0].tolist(), near_e.e[1].tolist(), strict=True))
-        out = []
-        for a, b, ok in zip(ia.tolist(), ib.tolist(), nonpar.tolist(), strict=True):
-            if not ok:
-                continue
-            ga, gb = g.edges[a]
-            ea, eb = e.edges[b]
-            if (int(ga), b) in gv_e or (int(gb), b) in gv_e:
-                continue
-            if (int(ea), a) in ev_g or (int(eb), a) in ev_g:
-                continue
-            out.append((a, b))
-        return out
+        f_, i_, j_, _ = near_g.e
+        gv_e = (f_ * g.nv + i_) * e.ne + j_
+        f_, i_, j_, _ = near_e.e
+        ev_g = (f_ * e.nv + i_) * g.ne + j_
+        gv_e.sort()
+        ev_g.sort()
+        for end in (0, 1):
+            keep &= ~_member((fr * g.nv + g.edges[ia, end]) * e.ne + ib, gv_e)
+            keep &= ~_member((fr * e.nv + e.edges[ib, end]) * g.ne + ia, ev_g)
+        return keep
 
     def _touching(
-        self, near_g: _Near, near_e: _Near, eg: IntArray, ee_: IntArray
-    ) -> frozenset[tuple[Feature, Feature]]:
+        self,
+        near_g: _NearF,
+        near_e: _NearF,
+        ee: tuple[IntArray, IntArray, IntArray],
+        n_frames: int,
+    ) -> list[frozenset[tuple[Feature, Feature]]]:
+        """Every (G feature, E feature) pair within the threshold, per frame."""
         g, e = self._g, self._e
-        # Primitive pairs, encoded as primitive ids (v: i, e: nv + i, f: nv + ne + i).
+        # Primitive pairs, encoded as primitive codes (v: i, e: nv + i, f: nv + ne + i).
+        fs: list[IntArray] = []
         pg: list[IntArray] = []
         pe: list[IntArray] = []
-        for kind, off in (("v", 0), ("e", e.nv), ("f", e.nv + e.ne)):
-            i, j, _ = getattr(near_g, kind)
+        for c, kind in enumerate(("v", "e", "f")):
+            f, i, j, _ = getattr(near_g, kind)
+            fs.append(f)
             pg.append(i)
-            pe.append(j + off)
-        for kind, off in (("v", 0), ("e", g.nv), ("f", g.nv + g.ne)):
-            i, j, _ = getattr(near_e, kind)
-            pg.append(j + off)
+            pe.append(j + e.offset[c])
+            f, i, j, _ = getattr(near_e, kind)
+            fs.append(f)
+            pg.append(j + g.offset[c])
             pe.append(i)
-        pg.append(eg + g.nv)
-        pe.append(ee_ + e.nv)
-        P = np.concatenate(pg)
-        Qe = np.concatenate(pe)
+        fs.append(ee[0])
+        pg.append(ee[1] + g.nv)
+        pe.append(ee[2] + e.nv)
+        F, P, Qe = np.concatenate(fs), np.concatenate(pg), np.concatenate(pe)
         if len(P) == 0:
-            return frozenset()
+            return [frozenset()] * n_frames
+        # Frames with the same primitive pairs have the same touching set: expand one of each.
+        pair = P * e.n_all + Qe
+        order = np.lexsort((pair, F))
+        F, P, Qe, pair = F[order], P[order], Qe[order], pair[order]
+        bounds = np.searchsorted(F, np.arange(n_frames + 1)).tolist()
+        rep_of: dict[bytes, int] = {}
+        same_as = list(range(n_frames))
+        keep = np.ones(len(F), dtype=bool)
+        for f in range(n_frames):
+            lo, hi = bounds[f], bounds[f + 1]
+            rep = rep_of.setdefault(pair[lo:hi].tobytes(), f)
+            if rep != f:
+                same_as[f] = rep
+                keep[lo:hi] = False
+        F, P, Qe = F[keep], P[keep], Qe[keep]
         lp, lq = g.star_len[P], e.star_len[Qe]
         n = lp * lq
         k = np.repeat(np.arange(len(P)), n)
         o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
         a = g.star_data[g.star_ptr[P[k]] + o // lq[k]]
         b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
-        n_e = e.nv + e.ne + e.nf
-        code = np.unique(a * n_e + b)
-        a, b = code // n_e, code % n_e
-        return frozenset(zip(_decode(a, g.nv, g.ne), _decode(b, e.nv, e.ne), strict=True))
+        code = np.unique((F[k] * g.n_all + a) * e.n_all + b)
+        fr, code = np.divmod(code, g.n_all * e.n_all)
+        a, b = np.divmod(code, e.n_all)
+        bounds = np.searchsorted(fr, np.arange(n_frames + 1)).tolist()
+        gf, ef = g.features, e.features
+        out: list[frozenset[tuple[Feature, Feature]]] = []
+        for f in range(n_frames):
+            if same_as[f] != f:
+                out.append(out[same_as[f]])
+                continue
+            lo, hi = bounds[f], bounds[f + 1]
+            aa, bb = a[lo:hi].tolist(), b[lo:hi].tolist()
+            out.append(
+                frozenset(zip(map(gf.__getitem__, aa), map(ef.__getitem__, bb), strict=True))
+            )
+        return out
 
-    def _point(
+    def _points(
         self,
-        kind: ContactKind,
-        a: Feature,
-        b: Feature,
+        fr: IntArray,
+        kind: IntArray,
+        ga: IntArray,
+        eb: IntArray,
         R: FloatArray,
         t: FloatArray,
         VG: FloatArray,
     ) -> FloatArray:
-        return _element_point(self._g, self._e, kind, a[1], b[1], R, t, VG)
+        """Contact points of elements (frame, kind code, G and E feature indices), in E.
+
+        See ``docs/contacts.md``: VF and FV project the vertex on the face's plane, EE is the
+        midpoint of the closest points of the edges, VE and EV project the vertex on the
+        edge, VV is the midpoint of the vertices.
+        """
+        g, e = self._g, self._e
+        out = np.empty((len(fr), 3))
+        for code in np.unique(kind).tolist():
+            m = kind == code
+            f, a, b = fr[m], ga[m], eb[m]
+            k = _KIND_LIST[code]
+            if k is ContactKind.VF:
+                p = VG[f, a]
+                nrm = e.poly.face_normals[b]
+                h = _dot(nrm, p) - e.poly.face_offsets[b]
+                out[m] = p - h[:, None] * nrm
+            elif k is ContactKind.FV:
+                q = e.V[b]
+                w = _rotate(R[f], g.poly.face_normals[a])
+                off = g.poly.face_offsets[a] + _dot(w, t[f])
+                out[m] = q - (_dot(w, q) - off)[:, None] * w
+            elif k is ContactKind.EE:
+                r = segment_segment_closest(
+                    VG[f, g.edges[a, 0]], VG[f, g.edges[a, 1]], e.E0[b], e.E1[b]
+                )
+                out[m] = 0.5 * (r.p + r.q)
+            elif k is ContactKind.VE:
+                out[m] = closest_point_on_segment(VG[f, a], e.E0[b], e.E1[b])[0]
+            elif k is ContactKind.EV:
+                out[m] = closest_point_on_segment(
+                    e.V[b], VG[f, g.edges[a, 0]], VG[f, g.edges[a, 1]]
+                )[0]
+            else:
+                out[m] = 0.5 * (VG[f, a] + e.V[b])
+        return out
 
 
-def _decode(codes: IntArray, nv: int, ne: int) -> list[Feature]:
-    """Features of encoded primitive ids (v: i, e: nv + i, f: nv + ne + i)."""
-    kind = (codes >= nv).astype(np.int64) + (codes >= nv + ne)
-    idx = codes - np.array([0, nv, nv + ne], dtype=np.int64)[kind]
-    return list(zip(np.array(_NAME)[kind].tolist(), idx.tolist(), strict=True))
+def _member(x: IntArray, sorted_set: IntArray) -> BoolArray:
+    """``np.isin(x, sorted_set)`` for a sorted ``sorted_set`` (a binary search per entry)."""
+    if len(sorted_set) == 0:
+        return np.zeros(len(x), dtype=bool)
+    i = np.minimum(np.searchsorted(sorted_set, x), len(sorted_set) - 1)
+    return np.asarray(sorted_set[i] == x, dtype=bool)
 
 
-def _project_on_segment(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Closest point of segment [a, b] to p (one point; cheaper than the broadcasting one)."""
-    d = b - a
-    dd = float(d @ d)
-    t = min(1.0, max(0.0, float((p - a) @ d) / dd)) if dd > 0 else 0.0
-    return np.asarray(a + t * d, dtype=np.float64)
+@dataclass
+class _NearF:
+    """Pairs (frame, query point i, feature j, distance) within the threshold, per kind."""
+
+    v: tuple[IntArray, IntArray, IntArray, FloatArray]
+    e: tuple[IntArray, IntArray, IntArray, FloatArray]
+    f: tuple[IntArray, IntArray, IntArray, FloatArray]
 
 
-def _element_point(
-    g: _ModelData,
-    e: _ModelData,
-    kind: ContactKind,
-    ga: int,
-    eb: int,
-    R: FloatArray,
-    t: FloatArray,
-    VG: FloatArray,
-) -> FloatArray:
-    """Contact point of an element in E (see ``docs/contacts.md``)."""
-    if kind is ContactKind.VF:
-        p = VG[ga]
-        n = e.poly.face_normals[eb]
-        return np.asarray(p - (n @ p - e.poly.face_offsets[eb]) * n)
-    if kind is ContactKind.FV:
-        q = e.V[eb]
-        w = R @ g.poly.face_normals[ga]
-        off = g.poly.face_offsets[ga] + w @ t
-        return np.asarray(q - (w @ q - off) * w)
-    if kind is ContactKind.EE:
-        a0, a1 = VG[g.edges[ga, 0]], VG[g.edges[ga, 1]]
-        r = segment_segment_closest(a0, a1, e.E0[eb], e.E1[eb])
-        return np.asarray(0.5 * (r.p + r.q))
-    if kind is ContactKind.VE:
-        return _project_on_segment(VG[ga], e.E0[eb], e.E1[eb])
-    if kind is ContactKind.EV:
-        return _project_on_segment(e.V[eb], VG[g.edges[ga, 0]], VG[g.edges[ga, 1]])
-    return np.asarray(0.5 * (VG[ga] + e.V[eb]))
+def _by_frame(near: _Near, n_points: int) -> _NearF:
+    """Split the query rows ``frame * n_points + i`` of ``near`` into (frame, i)."""
+    parts = []
+    for i, j, dist in (near.v, near.e, near.f):
+        f, i = np.divmod(i, n_points)
+        parts.append((f, i, j, dist))
+    return _NearF(*parts)
+
+
+def _snap(near: _NearF) -> tuple[IntArray, IntArray, IntArray, IntArray, IntArray]:
+    """Lowest-dimensional (then nearest) feature within the threshold of each query point.
+
+    Returns (frame, point, kind code, feature index, group) sorted by (frame, point); group is
+    0 when a face is near the point, 1 when an edge is (and no face), else 2: the scalar
+    search's order of first insertion.
+    """
+    cat = np.concatenate
+    fr = cat([near.v[0], near.e[0], near.f[0]])
+    if len(fr) == 0:
+        return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_I
+    i = cat([near.v[1], near.e[1], near.f[1]])
+    j = cat([near.v[2], near.e[2], near.f[2]])
+    dist = cat([near.v[3], near.e[3], near.f[3]])
+    k = np.repeat(np.arange(3, dtype=np.int64), [len(near.v[0]), len(near.e[0]), len(near.f[0])])
+    order = np.lexsort((dist, k, i, fr))
+    fr, i, j, k = fr[order], i[order], j[order], k[order]
+    first = np.concatenate([[True], (fr[1:] != fr[:-1]) | (i[1:] != i[:-1])])
+    start = np.flatnonzero(first)
+    last = np.append(start[1:] - 1, len(fr) - 1)
+    return fr[start], i[start], k[start], j[start], 2 - k[last]
+
+
+_KIND_LIST = (
+    ContactKind.VF,
+    ContactKind.FV,
+    ContactKind.EE,
+    ContactKind.VE,
+    ContactKind.EV,
+    ContactKind.VV,
+)
+# Kind code of (G feature kind code, E feature kind code), -1 for no element.
+_KIND_TABLE = np.full((3, 3), -1, dtype=np.int64)
+for _code, _k in enumerate(_KIND_LIST):
+    _KIND_TABLE[_CODE[_k.value[0].lower()], _CODE[_k.value[1].lower()]] = _code
+# Sort ranks matching the tuple order of element keys (kind value, ("v" | "e" | "f", index)).
+_KIND_RANK = np.argsort(np.argsort([k.value for k in _KIND_LIST]))
+_FEATURE_RANK = np.argsort(np.argsort(_NAME))
 
 
 # --------------------------------------------------------------------------------------------
