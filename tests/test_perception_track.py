@@ -137,37 +137,53 @@ def test_environment_not_found_raises(scene: dict) -> None:
         track_frames(scene["root"], scene["peg"], scene["slot"], units="m", options=red)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    reason="found at hand-over: from the true poses apo.recognition marks the free -> "
-    "stem-on-floor transition not direct (no sub-skills); from tracked poses (errors "
-    "< 0.5 mm, < 0.1 deg) it finds push_to sub-skills, and with 40 frames an intermediate "
-    "state. To settle with the recognition owner (or script the example through "
-    "apo.synthetic).",
-    strict=False,
-)
-def test_recognition_from_rendered_frames_matches_true_poses(tmp_path: Path) -> None:
-    """The task recognised from tracked frames has the sub-skills of the one from the truth."""
-    pytest.importorskip("apo.correction")
-    from apo.geometry import polyhedron_from_triangles
+def recognise_rendered_builtin(
+    root: Path, *, width: int, height: int, n_frames: int, hand: bool, seed: int
+) -> tuple[object, object, np.ndarray, np.ndarray]:
+    """Render apo demo's example from its true poses, track it, recognise truth and tracking.
+
+    Returns the task from the true poses, the task from the tracked poses, and the tracking
+    errors (mm, deg) of every frame.
+    """
+    from apo.perception.example import render_builtin
     from apo.recognition import recognize
 
-    cam, X_CE = example_camera(320, 240)
-    peg, slot = peg_and_slot()
-    times, X_EG = insertion_trajectory(16, duration=1.6)
-    X_EG = np.concatenate([X_EG, np.repeat(X_EG[-1:], 4, axis=0)])  # rest in the slot
-    times = np.arange(len(X_EG)) * 0.1
-    render_demonstration(peg, slot, X_CE, X_EG, times, cam, tmp_path, noise=NOISE, hand=True)
+    r = render_builtin(
+        root, width=width, height=height, n_frames=n_frames, noise=NOISE, seed=seed, hand=hand
+    )
     res = track_frames(
-        tmp_path, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE
+        r.frames, r.grasped, r.environment, units="m", init_grasped=r.X_CG0, init_environment=r.X_CE
     )
     assert not res.lost.any()
-    G = polyhedron_from_triangles(*peg)
-    E = polyhedron_from_triangles(*slot)
-    truth = recognize(G, E, times, X_EG)
-    observed = recognize(G, E, res.times, res.X_EG)
+    d = r.demo
+    truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
+    observed = recognize(d.grasped, d.environment, res.times, res.X_EG)
+    pos, rot = errors(res.X_EG, d.X_EG_true)
+    return truth, observed, pos, rot
+
+
+def test_recognition_from_rendered_frames_matches_true_poses(tmp_path: Path) -> None:
+    """apo demo's example (peg_in_hole_2d, states A-H), rendered at 320x240 and tracked."""
+    truth, observed, pos, rot = recognise_rendered_builtin(
+        tmp_path, width=320, height=240, n_frames=30, hand=False, seed=0
+    )
+    assert len(truth.subskill_sequence()) == 9  # Fig. 25: 3 push-to pairs, 3 slides
     assert observed.subskill_sequence() == truth.subskill_sequence()
-    assert len(truth.subskill_sequence()) > 0
+    assert [s.id for s in observed.states] == [s.id for s in truth.states]
+    assert np.median(pos) < 0.25 and pos.max() < 1.0
+    assert np.median(rot) < 0.15 and rot.max() < 0.5
+
+
+@pytest.mark.slow
+def test_recognition_from_rendered_frames_full_demo_with_hand(tmp_path: Path) -> None:
+    """The whole built-in example (60 frames) at 640x480, with a hand occluding the peg."""
+    truth, observed, pos, rot = recognise_rendered_builtin(
+        tmp_path, width=640, height=480, n_frames=60, hand=True, seed=3
+    )
+    assert observed.subskill_sequence() == truth.subskill_sequence()
+    assert [t.critical for t in observed.transitions] == [t.critical for t in truth.transitions]
+    assert np.median(pos) < 0.25 and pos.max() < 1.0
+    assert np.median(rot) < 0.15 and rot.max() < 0.5
 
 
 def test_tracking_without_background_frames_uses_the_table_plane(tmp_path: Path) -> None:

@@ -1,20 +1,43 @@
-"""A small scripted scene for tests, benchmarks and demos of the perception front end.
+"""Scripted scenes for tests, benchmarks and demos of the perception front end (metres).
 
-A T-shaped peg (50 mm wide, 40 mm tall) is carried above a U-shaped slot (60 mm wide), lowered
-and inserted; a camera looks down at it from about 0.33 m. Everything is in metres. (The
-recognition examples live in :mod:`apo.synthetic`; this module only needs poses.)
+Two scenes:
+
+- :func:`peg_and_slot`, :func:`insertion_trajectory`, :func:`example_camera`: a small T-peg
+  (50 mm wide, 40 mm tall) carried above a U-shaped slot (60 mm wide), lowered and inserted;
+  a camera looks down at it from about 0.33 m. Only poses: the benchmark's scene.
+- :func:`render_builtin`: the built-in example of ``apo demo``
+  (:func:`apo.synthetic.peg_in_hole_2d`, the paper's Fig. 21 insertion with states A-H of
+  Fig. 25) rendered into a frames folder from its true poses, with :func:`builtin_camera`.
+  Tracking these frames and recognising the tracked poses must give the task recognised from
+  the true poses (``tests/test_perception_track.py``, ``apo demo --from-frames``).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from apo.perception.frames import Camera
-from apo.perception.render import Triangles, pose_looking_at
+from apo.perception.render import DepthNoise, Triangles, pose_looking_at, render_demonstration
 from apo.spatial import invert_pose, pose_from_position_quaternion
 
-__all__ = ["example_camera", "insertion_trajectory", "peg_and_slot"]
+if TYPE_CHECKING:
+    from apo.geometry import Polyhedron
+    from apo.synthetic import SyntheticDemo
+
+__all__ = [
+    "RenderedDemo",
+    "builtin_camera",
+    "example_camera",
+    "insertion_trajectory",
+    "peg_and_slot",
+    "polyhedron_triangles",
+    "render_builtin",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -105,3 +128,108 @@ def example_camera(width: int = 640, height: int = 480) -> tuple[Camera, FloatAr
     X_EC = pose_looking_at([0.12, -0.19, 0.25], [0.0, 0.0, 0.03])
     cam = Camera(f, f, (width - 1) / 2, (height - 1) / 2, width, height, 1e-4, X_EC)
     return cam, invert_pose(X_EC)
+
+
+BUILTIN_UP = (0.0, 1.0, 0.0)
+"""Up direction of the built-in example's frames (:func:`apo.synthetic.peg_in_hole_2d`: y up)."""
+
+
+def builtin_camera(width: int = 640, height: int = 480) -> tuple[Camera, FloatArray]:
+    """Return the camera of the built-in example (``fx = fy = 525 * width / 640``) and ``X_CE``.
+
+    :func:`apo.synthetic.peg_in_hole_2d` moves the peg in the environment's xy-plane, y up,
+    over a 140 mm block. The camera is 0.42 m from the block's slot, in front of that plane
+    (+z), above it and to the right, so that faces of both objects constrain every direction
+    and the slot is seen from the front; depth in 0.1 mm units; ``camera.X_WC`` is its pose
+    in the environment (world) frame.
+    """
+    f = 525.0 * width / 640.0
+    target = np.array([0.0, 0.10, 0.0])
+    view = np.array([0.30, 0.45, 0.85])
+    eye = target + 0.42 * view / np.linalg.norm(view)
+    X_EC = pose_looking_at(eye, target, up=BUILTIN_UP)
+    cam = Camera(f, f, (width - 1) / 2, (height - 1) / 2, width, height, 1e-4, X_EC)
+    return cam, invert_pose(X_EC)
+
+
+def polyhedron_triangles(poly: Polyhedron) -> Triangles:
+    """Return ``(vertices, triangles)`` of a polyhedron's face triangulation (its own units)."""
+    tri = np.concatenate([np.asarray(t, dtype=np.int64) for t in poly.face_triangles])
+    return np.asarray(poly.vertices, dtype=np.float64), tri
+
+
+@dataclass(frozen=True)
+class RenderedDemo:
+    """The built-in example rendered into a frames folder (see :func:`render_builtin`).
+
+    Attributes
+    ----------
+    frames : Path
+        The frames folder (``docs/perception.md`` layout).
+    demo : SyntheticDemo
+        The scripted demonstration and its ground truth (``X_EG_true``, ``times``, metres).
+    grasped, environment : (vertices, triangles)
+        The two models, metres, own frames (what the tracker registers).
+    camera : Camera
+        The camera (``camera.X_WC`` is its pose in the environment frame).
+    X_CE : ndarray, shape (4, 4)
+        True pose of the environment in the camera frame, metres.
+    X_CG0 : ndarray, shape (4, 4)
+        True pose of the grasped object in the camera frame at the first frame, metres.
+    """
+
+    frames: Path
+    demo: SyntheticDemo
+    grasped: Triangles
+    environment: Triangles
+    camera: Camera
+    X_CE: FloatArray
+    X_CG0: FloatArray
+
+
+def render_builtin(
+    out_dir: str | Path,
+    *,
+    width: int = 640,
+    height: int = 480,
+    n_frames: int = 60,
+    noise: DepthNoise | float | None = None,
+    seed: int | None = 0,
+    hand: bool = False,
+) -> RenderedDemo:
+    """Render the built-in example's true poses into a frames folder.
+
+    The demonstration is :func:`apo.synthetic.peg_in_hole_2d` (the one ``apo demo``
+    recognises), seen by :func:`builtin_camera`, on a table, with a recorded background.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Folder to create (or fill).
+    width, height : int, optional
+        Image size, pixels.
+    n_frames : int, optional
+        Frames of the demonstration (at its 10 frames/s).
+    noise : DepthNoise or float or None, optional
+        Sensor model (see :func:`apo.perception.render.render_demonstration`; None: the
+        default, 1 mm at 1 m, 0.18 mm at the parts).
+    seed : int or None, optional
+        Seed of the noise.
+    hand : bool, optional
+        Add a hand holding the peg's crossbar.
+
+    Returns
+    -------
+    RenderedDemo
+    """
+    from apo.synthetic import peg_in_hole_2d
+
+    demo = peg_in_hole_2d(n_frames)
+    G = polyhedron_triangles(demo.grasped)
+    E = polyhedron_triangles(demo.environment)
+    cam, X_CE = builtin_camera(width, height)
+    out = render_demonstration(
+        G, E, X_CE, demo.X_EG_true, demo.times, cam, out_dir,
+        units="m", noise=noise, seed=seed, hand=hand, up=BUILTIN_UP,
+    )  # fmt: skip
+    return RenderedDemo(out, demo, G, E, cam, X_CE, X_CE @ demo.X_EG_true[0])

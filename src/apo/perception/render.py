@@ -401,14 +401,41 @@ def add_depth_noise(
     return d
 
 
-def hand_triangles(grasped: Triangles) -> Triangles:
+def _frame_with_z_up(up: npt.ArrayLike) -> FloatArray:
+    """Return the rotation ``R`` (rows: new x, y, z axes) that maps ``up`` onto ``+z``.
+
+    The new x axis is the first coordinate axis not parallel to ``up``, made orthogonal to
+    it, so ``up = +z`` gives the identity and ``up = +y`` maps ``(x, y, z)`` to
+    ``(x, -z, y)``.
+    """
+    u = np.asarray(up, dtype=np.float64)
+    norm = float(np.linalg.norm(u))
+    if u.shape != (3,) or not np.isfinite(norm) or norm == 0.0:
+        raise ValueError(f"up must be a non-zero 3-vector, got {np.asarray(up).tolist()}")
+    u = u / norm
+    for axis in np.eye(3):
+        a = axis - (axis @ u) * u
+        if np.linalg.norm(a) > 1e-6:
+            break
+    a /= np.linalg.norm(a)
+    return np.vstack((a, np.cross(u, a), u))
+
+
+def _rotated(mesh: Triangles, R: FloatArray) -> Triangles:
+    return np.asarray(mesh[0], dtype=np.float64) @ R.T, mesh[1]
+
+
+def hand_triangles(grasped: Triangles, *, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> Triangles:
     """Return a simple hand (thumb, finger and wrist boxes) holding ``grasped`` from the side.
 
-    The boxes are in the grasped object's frame (metres): two 12 mm-thick fingers press on
-    the ``+-y`` faces of the upper third of its bounding box, joined by a wrist box that leaves
-    towards ``+x`` and up, so the hand occludes part of the object from most views.
+    The boxes are in the grasped object's frame (metres). With ``up = +z``: two 12 mm-thick
+    fingers press on the ``+-y`` faces of the upper third of its bounding box, joined by a
+    wrist box that leaves towards ``+x`` and up, so the hand occludes part of the object
+    from most views. Another ``up`` (a direction in the grasped object's frame) turns the
+    whole construction so that ``+z`` becomes ``up`` (see :func:`_frame_with_z_up`).
     """
-    V = np.asarray(grasped[0], dtype=np.float64)
+    R = _frame_with_z_up(up)
+    V = np.asarray(grasped[0], dtype=np.float64) @ R.T
     lo, hi = V.min(0), V.max(0)
     size = hi - lo
     c = (lo + hi) / 2
@@ -422,16 +449,23 @@ def hand_triangles(grasped: Triangles) -> Triangles:
         (wrist_len, size[1] + 2 * t, 0.03),
         (c[0] + size[0] * 0.3 + wrist_len / 2, c[1], hi[2] + 0.015),
     )
-    return concatenate([thumb, index, wrist])
+    return _rotated(concatenate([thumb, index, wrist]), R.T)
 
 
-def _table_triangles(environment: Triangles, size: float = 2.0, cells: int = 40) -> Triangles:
-    """Return a square table top under the environment (z = its lowest point), as a grid.
+def _table_triangles(
+    environment: Triangles,
+    size: float = 2.0,
+    cells: int = 40,
+    *,
+    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+) -> Triangles:
+    """Return a square table top under the environment (at its lowest point along ``up``).
 
     The grid lets the rasteriser drop only the cells behind the camera (it culls whole
     triangles at the near plane instead of clipping them).
     """
-    z0 = float(np.asarray(environment[0])[:, 2].min())
+    R = _frame_with_z_up(up)
+    z0 = float((np.asarray(environment[0], dtype=np.float64) @ R.T)[:, 2].min())
     g = np.linspace(-size / 2, size / 2, cells + 1)
     X, Y = np.meshgrid(g, g, indexing="ij")
     V = np.column_stack((X.ravel(), Y.ravel(), np.full(X.size, z0)))
@@ -439,7 +473,7 @@ def _table_triangles(environment: Triangles, size: float = 2.0, cells: int = 40)
     a = (i * (cells + 1) + j).ravel()
     b, c, d = a + cells + 1, a + cells + 2, a + 1
     T = np.vstack((np.column_stack((a, b, c)), np.column_stack((a, c, d))))
-    return V, T.astype(np.int64)
+    return _rotated((V, T.astype(np.int64)), R.T)
 
 
 def render_demonstration(
@@ -457,6 +491,7 @@ def render_demonstration(
     hand: bool = False,
     table: bool = True,
     background: bool = True,
+    up: npt.ArrayLike = (0.0, 0.0, 1.0),
 ) -> Path:
     """Render a demonstration into a frames folder (the layout of ``docs/perception.md``).
 
@@ -487,6 +522,10 @@ def render_demonstration(
         Put the environment on a textured table (the plane ``z = min z`` of its model).
     background : bool, optional
         Also write ``background/`` (the table alone, with its own noise).
+    up : array_like, shape (3,), optional
+        The up direction, in the environment's frame for the table (perpendicular to it,
+        under the environment's lowest point) and in the grasped object's frame for the
+        hand (which holds its upper part). Default ``+z``.
 
     Returns
     -------
@@ -524,7 +563,7 @@ def render_demonstration(
     static_poses: list[FloatArray] = []
     static_albedo: list[tuple[float, float, float]] = []
     if table:
-        static.append(_table_triangles(E))
+        static.append(_table_triangles(E, up=up))
         static_poses.append(XCE)
         static_albedo.append(TABLE)
     if background:
@@ -535,21 +574,30 @@ def render_demonstration(
             bg_rgb = np.zeros((camera.height, camera.width, 3), dtype=np.uint8)
             bg_depth = np.zeros((camera.height, camera.width), dtype=np.float32)
         write_background(out, bg_rgb, bg_depth, camera)
-    H = hand_triangles(G) if hand else None
+    H = hand_triangles(G, up=up) if hand else None
+    # The table and the environment do not move: render them once, then only the grasped
+    # object (and the hand) per frame, composited by depth (the same z-buffer test).
+    still = render_scene(
+        [*static, E], [*static_poses, XCE], camera,
+        albedo=[*static_albedo, WHITE], textured=[table] + [False] * len(static) if table else None,
+    )  # fmt: skip
     for i, X in enumerate(XEG):
         XCG = XCE @ X
-        meshes = [*static, E, G]
-        poses = [*static_poses, XCE, XCG]
-        albedo = [*static_albedo, WHITE, WHITE]
-        if H is not None:
-            meshes.append(H)
-            poses.append(XCG)
-            albedo.append(SKIN)
-        textured = [table] + [False] * (len(meshes) - 1) if table else None
-        r = render_scene(meshes, poses, camera, albedo=albedo, textured=textured)
-        rgb, depth = _noisy(r, model, rng)
+        moving = [G] if H is None else [G, H]
+        r = render_scene(moving, [XCG] * len(moving), camera, albedo=[WHITE, SKIN][: len(moving)])
+        rgb, depth = _noisy(_composite(still, r), model, rng)
         write_frame(out, i, rgb, depth, camera)
     return out
+
+
+def _composite(back: Rendering, front: Rendering) -> Rendering:
+    """Return the nearer surface of two renderings at each pixel (labels: ``front``'s +1000)."""
+    near = (front.depth > 0) & ((back.depth == 0) | (front.depth < back.depth))
+    return Rendering(
+        np.where(near[..., None], front.rgb, back.rgb),
+        np.where(near, front.depth, back.depth),
+        np.where(near, front.label + 1000, back.label),
+    )
 
 
 def _noisy(
