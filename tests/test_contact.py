@@ -540,8 +540,9 @@ SCENES_FOR_BAND = {name: scene for name, scene, *_ in CANONICAL if name != "none
 FV_NOT_SNAPPED = (
     "apo.contact: an FV element (G's face on E's vertex) keeps minus G's face normal moved "
     "with the pose, -R n_G, even when one of E's face normals at the vertex lies within the "
-    "merge angle: the G-half-space fast path of _cone_pair_rays returns it without "
-    "_snap_rays, while VF/EE/VE elements are snapped to E's exact normals. In a face-face "
+    "merge angle: the G-half-space case (the half_g branch of ContactFinder._cone_pairs and "
+    "the scalar _cone_pair_rays) returns it without _snap_rays, while VF/EE/VE elements are "
+    "snapped to E's exact normals. In a face-face "
     "contact seen with a 1e-4 rad tilt the FV normal then differs from the VF ones by 1e-4 "
     "rad > tol.rank and the block-on-table numbers (2,1,0,1,2,0,1,2) become (1,2,0,...)"
 )
