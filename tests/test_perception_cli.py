@@ -90,3 +90,183 @@ def test_track_reports_bad_frames_folder(
     )  # fmt: skip
     assert code == 2
     assert "camera.json: camera calibration file not found" in capsys.readouterr().err
+
+
+# --- apo analyze FRAMES and apo demo --from-frames: the built-in example, rendered ---------
+
+
+def subskills(task_json: Path) -> list[tuple[str, str, str | None]]:
+    d = json.loads(task_json.read_text())
+    return [(k["kind"], k["space"], k["type"]) for t in d["transitions"] for k in t["subskills"]]
+
+
+@pytest.fixture(scope="module")
+def builtin(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """apo demo's example (peg_in_hole_2d) rendered at 320x240, models as mm STL files."""
+    from apo.perception.example import render_builtin
+    from apo.recognition import recognize
+
+    root = tmp_path_factory.mktemp("builtin")
+    r = render_builtin(root / "frames", width=320, height=240, n_frames=30, noise=1.5e-3)
+    for name, (V, T) in (("peg", r.grasped), ("block", r.environment)):
+        trimesh.Trimesh(V * 1e3, T, process=False).export(root / f"{name}.stl")
+    d = r.demo
+    truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
+    return {"root": root, "r": r, "truth": truth.subskill_sequence()}
+
+
+def test_analyze_accepts_a_frames_folder(builtin: dict, capsys: pytest.CaptureFixture[str]) -> None:
+    root, r = builtin["root"], builtin["r"]
+    out = root / "task"
+    code = main(
+        [
+            "analyze", str(r.frames),
+            "--grasped", str(root / "peg.stl"), "--environment", str(root / "block.stl"),
+            "--units", "mm",
+            "--init-grasped", pose_text(r.X_CG0, 1e3),
+            "--init-environment", pose_text(r.X_CE, 1e3),
+            "--out", str(out), "--no-plot",
+        ]
+    )  # fmt: skip
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "30 of 30 frames tracked" in captured.err  # stdout keeps the table (or --json)
+    assert "8 states" in captured.out
+    assert subskills(out / "task.json") == builtin["truth"]
+    header = (out / "poses.csv").read_text().splitlines()[0]
+    assert header == "t,x,y,z,qw,qx,qy,qz,confidence"
+    assert json.loads((out / "poses.environment.json").read_text())["units"] == "mm"
+
+
+def test_analyze_frames_folder_needs_the_models(
+    builtin: dict, capsys: pytest.CaptureFixture[str]
+) -> None:
+    frames = builtin["r"].frames
+    code = main(["analyze", str(frames), "--out", str(builtin["root"] / "x")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert f"{frames}: no grasped model: pass --grasped MODEL" in err
+    assert "Traceback" not in err
+
+
+def test_analyze_rejects_tracking_options_for_pose_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    csv = tmp_path / "poses.csv"
+    csv.write_text("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n")
+    code = main(["analyze", str(csv), "--init-grasped", "0 0 0 1 0 0 0"])
+    assert code == 2
+    assert "--init-grasped applies to a frames folder only" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_from_frames_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """apo demo --from-frames: render (with a hand) -> track -> recognise, all 60 frames."""
+    from apo.recognition import recognize
+    from apo.synthetic import peg_in_hole_2d
+
+    out = tmp_path / "demo"
+    code = main(["demo", "--from-frames", "--resolution", "320x240", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "60 of 60 frames tracked" in captured.err
+    assert (out / "frames" / "camera.json").is_file()
+    assert len(list((out / "frames" / "depth").glob("*.png"))) == 60
+    assert (out / "poses.csv").is_file() and (out / "task.json").is_file()
+    d = peg_in_hole_2d()
+    truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
+    assert subskills(out / "task.json") == truth.subskill_sequence()
+    assert "apo demo --from-frames" in json.loads((out / "task.json").read_text())["source"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--from-frames", "--noise-mm", "1"], "--noise-mm is the pose noise of the default demo"),
+        (["--from-frames", "--resolution", "640"], "--resolution: expected WxH"),
+        (["--from-frames", "--depth-noise", "-1"], "--depth-noise must be a non-negative"),
+    ],
+)
+def test_demo_from_frames_bad_options(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], match: str
+) -> None:
+    assert main(["demo", *argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert match in err and "Traceback" not in err
+
+
+# --- bad input: a clear error naming the file, exit code 2, no traceback --------------------
+
+
+def small_folder(root: Path, n: int = 2) -> Path:
+    from apo.perception.frames import Camera, write_camera, write_frame, write_timestamps
+
+    cam = Camera(100.0, 100.0, 15.5, 11.5, 32, 24, 0.001)
+    root.mkdir()
+    write_camera(root / "camera.json", cam)
+    for i in range(n):
+        write_frame(root, i, np.zeros((24, 32, 3), np.uint8), np.full((24, 32), 0.5), cam)
+    write_timestamps(root, np.arange(n) * 0.1)
+    return root
+
+
+def break_depth(root: Path) -> str:
+    from PIL import Image
+
+    Image.fromarray(np.zeros((24, 32), np.uint8)).save(root / "depth" / "000001.png")
+    return r"depth/000001.png: depth must be a 16-bit single-channel PNG"
+
+
+def break_timestamps(root: Path) -> str:
+    (root / "timestamps.txt").write_text("0.0\n")
+    return "timestamps.txt: 1 times for 2 frames"
+
+
+def break_rgb(root: Path) -> str:
+    (root / "rgb" / "000001.png").unlink()
+    return "rgb/000001.png: missing (depth/000001.png exists)"
+
+
+def break_grasped(root: Path) -> str:
+    (root.parent / "peg.stl").unlink()
+    return "peg.stl"  # "no such file" (track) or "grasped model file not found" (analyze)
+
+
+@pytest.mark.parametrize(
+    ("extra", "breaker"),
+    [
+        ([], break_depth),
+        ([], break_timestamps),
+        ([], break_rgb),
+        ([], break_grasped),
+        (["--init-grasped", "nan 0 0.3 1 0 0 0"], "--init-grasped: expected 7 numbers"),
+        (["--init-environment", "0 0 0.3 1 0 0"], "--init-environment: expected 7 numbers"),
+        (["--min-confidence", "1.5"], "--min-confidence must be in [0, 1]"),
+    ],
+)
+@pytest.mark.parametrize("command", ["track", "analyze"])
+def test_bad_input_is_a_clear_error(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    command: str,
+    extra: list[str],
+    breaker: object,
+) -> None:
+    frames = small_folder(tmp_path / "frames")
+    peg, slot = peg_and_slot()
+    for name, (V, T) in (("peg", peg), ("slot", slot)):
+        trimesh.Trimesh(V * 1e3, T, process=False).export(tmp_path / f"{name}.stl")
+    match = breaker(frames) if callable(breaker) else str(breaker)
+    out = ["--out", str(tmp_path / ("p.csv" if command == "track" else "task"))]
+    argv = [
+        command, str(frames),
+        "--grasped", str(tmp_path / "peg.stl"), "--environment", str(tmp_path / "slot.stl"),
+        "--init-grasped", "0 0 0.3 1 0 0 0", "--init-environment", "0 0 0.35 1 0 0 0",
+        *extra, *out,
+    ]  # fmt: skip
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert match in err
+    assert err.startswith(f"apo {command}: error: ") and "Traceback" not in err
+    assert not (tmp_path / "p.csv").exists() and not (tmp_path / "task" / "task.json").exists()

@@ -31,14 +31,20 @@ def register(subparsers: Any) -> None:
     """Add the ``analyze`` sub-command."""
     p = subparsers.add_parser(
         "analyze",
-        help="recognise a demonstration (.pose.list or CSV) into task.json",
+        help="recognise a demonstration (.pose.list, CSV or frames folder) into task.json",
         description=(
             "Recognise a demonstration: contact states, DOF, transitions, sub-skills and "
             "critical transitions. Prints the Fig. 25-style table and writes task.json, "
-            "frames.csv and dof.png to --out."
+            "frames.csv and dof.png to --out. DEMO may also be a frames folder (see "
+            "docs/perception.md): it is tracked first (as by apo track, which needs "
+            "--grasped and --environment), and the poses are written to --out as poses.csv."
         ),
     )
-    p.add_argument("demo", metavar="DEMO", help="a .pose.list file or a CSV of poses")
+    p.add_argument(
+        "demo",
+        metavar="DEMO",
+        help="a .pose.list file, a CSV of poses, or a frames folder (camera.json, rgb/, depth/)",
+    )
     p.add_argument("--out", metavar="DIR", help="output folder (default: <DEMO stem>-task)")
     p.add_argument("--json", action="store_true", help="print task.json instead of the table")
     p.add_argument("--grasped", metavar="MODEL", help="grasped model file (CSV input)")
@@ -53,6 +59,9 @@ def register(subparsers: Any) -> None:
         help="contact distance threshold in --units (default: scale-aware)",
     )
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
+    from apo.cli.track import add_tracking_options
+
+    add_tracking_options(p)
     p.set_defaults(func=run)
 
 
@@ -278,7 +287,7 @@ def _load_models(
 def run(args: argparse.Namespace) -> int:
     """Run ``apo analyze``; return the exit code."""
     demo = Path(args.demo)
-    if not demo.is_file():
+    if not demo.is_file() and not demo.is_dir():
         raise InputFormatError(f"{demo}: file not found")
     worker = None if args.no_plot else PlotWorker()
     try:
@@ -292,12 +301,21 @@ def _run(args: argparse.Namespace, demo: Path, worker: PlotWorker | None) -> int
     poses = importlib.import_module("apo.io.poses")
     from apo.recognition import recognize_frames
 
-    dem = poses.load_demonstration(
-        demo, units=args.units, grasped=args.grasped, environment=args.environment
-    )
-    G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
-    units = args.units or getattr(dem, "units", None) or "mm"
     out = Path(args.out) if args.out else Path(demo.name.split(".")[0] + "-task")
+    if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
+        from apo.cli.track import demonstration_from_frames
+
+        G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, None)
+        dem: Any = demonstration_from_frames(args, demo, gp, ep, out)
+    else:
+        from apo.cli.track import reject_tracking_options
+
+        reject_tracking_options(args, demo)
+        dem = poses.load_demonstration(
+            demo, units=args.units, grasped=args.grasped, environment=args.environment
+        )
+        G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
+    units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
 
     threshold = None if args.threshold is None else args.threshold * UNITS[units]

@@ -11,12 +11,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 import numpy.typing as npt
 
 from apo.errors import InputFormatError
+
+if TYPE_CHECKING:
+    from apo.perception.track import TrackResult
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
@@ -26,6 +31,8 @@ def _pose_arg(text: str, name: str, scale: float) -> npt.NDArray[np.float64]:
 
     try:
         values = [float(x) for x in text.replace(",", " ").split()]
+        if not np.all(np.isfinite(values)):
+            raise ValueError("not all finite")
         X = pose_from_xyz_quat(values)
     except ValueError as exc:
         raise InputFormatError(
@@ -56,13 +63,15 @@ def _xyzq(X: npt.NDArray[np.float64], scale: float) -> list[float]:
     return [*(float(v) / scale for v in p), *(float(v) for v in q)]
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``apo track``."""
-    from apo.io.poses import write_pose_csv
+def track_from_args(
+    args: argparse.Namespace, frames: str | Path, grasped: str | Path, environment: str | Path
+) -> TrackResult:
+    """Track ``frames`` with the options of :func:`add_tracking_options` (``args.units``)."""
     from apo.perception.segment import ColourModel
     from apo.perception.track import TrackOptions, track_frames
 
-    scale = UNITS[args.units]
+    units = args.units or "mm"
+    scale = UNITS[units]
     init_g = _pose_arg(args.init_grasped, "--init-grasped", scale) if args.init_grasped else None
     init_e = (
         _pose_arg(args.init_environment, "--init-environment", scale)
@@ -74,31 +83,45 @@ def run(args: argparse.Namespace) -> int:
         if args.colour
         else ColourModel.white()
     )
+    if not 0.0 <= args.min_confidence <= 1.0:
+        raise InputFormatError(f"--min-confidence must be in [0, 1], got {args.min_confidence}")
     options = TrackOptions(colour=colour, min_confidence=args.min_confidence)
-    result = track_frames(
-        args.frames,
-        args.grasped,
-        args.environment,
-        units=args.units,
+    return track_frames(
+        frames,
+        grasped,
+        environment,
+        units=units,
         init_grasped=init_g,
         init_environment=init_e,
         options=options,
     )
-    out = Path(args.out)
+
+
+def write_tracking(
+    result: TrackResult, out: Path, units: str, *, file: TextIO | None = None
+) -> Path:
+    """Write the pose CSV ``out`` and the environment JSON beside it; report on ``file``.
+
+    ``file`` (default stdout) gets the one-line summary; lost frames are reported on stderr.
+    Returns the path of the environment JSON.
+    """
+    from apo.io.poses import write_pose_csv
+
+    scale = UNITS[units]
     out.parent.mkdir(parents=True, exist_ok=True)
     keep = ~result.lost
     write_pose_csv(
         out,
         result.times[keep],
         result.X_EG[keep],
-        units=args.units,
+        units=units,
         extra={"confidence": result.confidence[keep]},
     )
     kept = int(keep.sum())
     lost = [int(i) for i in np.nonzero(result.lost)[0]]
     env: dict[str, object] = {
         "frame": "camera",
-        "units": args.units,
+        "units": units,
         "X_CE": _xyzq(result.X_CE, scale),
         "confidence": round(result.environment_confidence, 4),
         "lost_frames": lost,
@@ -108,14 +131,108 @@ def run(args: argparse.Namespace) -> int:
         env["X_WE"] = _xyzq(result.X_WC @ result.X_CE, scale)
     env_path = environment_path(out)
     env_path.write_text(json.dumps(env, indent=2) + "\n", encoding="utf-8")
-    print(f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}")
+    print(
+        f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}",
+        file=file or sys.stdout,
+    )
     if lost:
         print(
             f"warning: {len(lost)} frame(s) lost and left out of {out}: {lost[:20]}"
             + (" ..." if len(lost) > 20 else ""),
             file=sys.stderr,
         )
+    return env_path
+
+
+@dataclass(frozen=True)
+class TrackedDemonstration:
+    """The tracked frames of a demonstration, ready for recognition (metres, seconds).
+
+    Attributes
+    ----------
+    times : ndarray, shape (N,)
+        Times of the tracked frames (lost frames left out).
+    X_EG : ndarray, shape (N, 4, 4)
+        The grasped object in the environment frame.
+    units : str
+        The length unit of the command line (``--units``) and of the files written.
+    result : TrackResult
+        Everything the tracker returned (all frames).
+    """
+
+    times: npt.NDArray[np.float64]
+    X_EG: npt.NDArray[np.float64]
+    units: str
+    result: TrackResult
+
+
+def demonstration_from_frames(
+    args: argparse.Namespace,
+    frames: str | Path,
+    grasped: str | Path,
+    environment: str | Path,
+    out_dir: Path,
+) -> TrackedDemonstration:
+    """Track a frames folder for ``apo analyze FRAMES`` / ``apo demo --from-frames``.
+
+    Writes ``out_dir/poses.csv`` and ``out_dir/poses.environment.json`` (as ``apo track``),
+    reports on stderr (stdout may carry ``--json``), and returns the tracked poses.
+    """
+    result = track_from_args(args, frames, grasped, environment)
+    units = args.units or "mm"
+    write_tracking(result, out_dir / "poses.csv", units, file=sys.stderr)
+    keep = ~result.lost
+    return TrackedDemonstration(result.times[keep], result.X_EG[keep], units, result)
+
+
+def reject_tracking_options(args: argparse.Namespace, demo: Path) -> None:
+    """Raise if a tracking option was given for an input that is not a frames folder."""
+    for flag in ("init_grasped", "init_environment", "colour"):
+        if getattr(args, flag, None) is not None:
+            raise InputFormatError(
+                f"{demo}: --{flag.replace('_', '-')} applies to a frames folder only "
+                "(this is a pose file)"
+            )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``apo track``."""
+    result = track_from_args(args, args.frames, args.grasped, args.environment)
+    write_tracking(result, Path(args.out), args.units)
     return 0
+
+
+def add_tracking_options(p: argparse.ArgumentParser) -> None:
+    """Add the tracking options shared by ``apo track`` and ``apo analyze FRAMES``."""
+    p.add_argument(
+        "--init-grasped",
+        metavar="POSE",
+        help='grasped object in the camera frame at the first frame, "x y z qw qx qy qz" '
+        "(--units; frames input only)",
+    )
+    p.add_argument(
+        "--init-environment",
+        metavar="POSE",
+        help='environment object in the camera frame, "x y z qw qx qy qz" (--units; frames '
+        "input only)",
+    )
+    p.add_argument(
+        "--colour",
+        metavar="RGB",
+        help='colour of the objects, "r g b" in 0..255 (default white)',
+    )
+    p.add_argument(
+        "--colour-tolerance",
+        type=float,
+        default=0.05,
+        help="chromaticity tolerance of --colour (default 0.05)",
+    )
+    p.add_argument(
+        "--min-confidence",
+        type=float,
+        default=0.8,
+        help="frames below this confidence are re-initialised, then lost (default 0.8)",
+    )
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -143,32 +260,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         choices=sorted(UNITS),
         help="units of the model files, the initial poses and the output (default mm)",
     )
-    p.add_argument(
-        "--init-grasped",
-        metavar="POSE",
-        help='grasped object in the camera frame at the first frame, "x y z qw qx qy qz"',
-    )
-    p.add_argument(
-        "--init-environment",
-        metavar="POSE",
-        help='environment object in the camera frame, "x y z qw qx qy qz"',
-    )
-    p.add_argument(
-        "--colour",
-        metavar="RGB",
-        help='colour of the objects, "r g b" in 0..255 (default white)',
-    )
-    p.add_argument(
-        "--colour-tolerance",
-        type=float,
-        default=0.05,
-        help="chromaticity tolerance of --colour (default 0.05)",
-    )
-    p.add_argument(
-        "--min-confidence",
-        type=float,
-        default=0.8,
-        help="frames below this confidence are re-initialised, then lost (default 0.8)",
-    )
+    add_tracking_options(p)
     p.add_argument("--out", required=True, metavar="CSV", help="output pose CSV")
     p.set_defaults(func=run)
