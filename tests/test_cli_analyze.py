@@ -1,5 +1,6 @@
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -109,6 +110,32 @@ def test_real_demonstration_end_to_end(real_data_dir, tmp_path, capsys):
     assert any(k.kind == "push_to" for k in trans[-1].subskills)
     assert all(t.direct for t in trans)
     assert all(s.pose_converged for s in states if s.elements)
+    # The paper's Fig. 25, transition by transition: (1), (4), (7) push-to in translation
+    # and type I rotation; (2) slide in both; (3) none; (5) rotational slide only (only the
+    # rotation restraining DOF grows); (6) the critical one, no sub-skill. C and F singular.
+    push = [("push_to", "translation", None), ("push_to", "rotation", "I")]
+    slide = [("slide", "translation", None), ("slide", "rotation", None)]
+    expected = [push, slide, [], push, [("slide", "rotation", None)], [], push]
+    got = [[(k.kind, k.space, k.type) for k in t.subskills] for t in trans]
+    assert got == expected
+    assert [s.singular for s in states] == [False, False, True, False, False, True, False, False]
+    assert [t.critical for t in trans] == [False] * 5 + [True, False]
+    # every sub-skill has its direction (and a rotation its axis point) in the task
+    for t in data["transitions"]:
+        for k in t["subskills"]:
+            assert np.linalg.norm(k["direction"]) == pytest.approx(1.0)
+            assert (k["point"] is None) == (k["space"] == "translation")
+
+
+@pytest.mark.realdata
+def test_real_demonstration_by_a_relative_path(real_data_dir, tmp_path, monkeypatch, capsys):
+    # model paths in the list (".\\peg.step") resolve against the list's folder, whatever
+    # the working directory and however the list itself is named
+    monkeypatch.chdir(real_data_dir.parent)
+    rel = Path(real_data_dir.name) / "peg_in_hole.pose.list"
+    code = main(["analyze", str(rel), "--out", str(tmp_path / "o"), "--no-plot"])
+    assert code == 0, capsys.readouterr().err
+    assert (tmp_path / "o" / "task.json").is_file()
 
 
 # ---------------------------------------------------------------------------------------------

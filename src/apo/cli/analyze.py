@@ -272,9 +272,7 @@ def _load_models(
         p = given or getattr(dem, attr, None)
         if p is None:
             raise InputFormatError(f"{demo_path}: no {flag[2:]} model: pass {flag} MODEL")
-        p = Path(p)
-        if not p.is_absolute() and given is None:
-            p = demo_path.parent / p
+        p = Path(p)  # paths from a .pose.list are already resolved against its folder
         if not p.exists():
             raise InputFormatError(f"{demo_path}: {flag[2:]} model file not found: {p}")
         paths.append(p)
