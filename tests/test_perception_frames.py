@@ -179,3 +179,12 @@ def test_image_size_must_match_camera(tmp_path: Path) -> None:
 def test_depth_too_far_for_16_bits(tmp_path: Path) -> None:
     with pytest.raises(InputFormatError, match="does not fit 16 bits"):
         write_frame(tmp_path, 0, np.zeros((24, 32, 3), np.uint8), np.full((24, 32), 70.0), CAM)
+
+
+def test_subsampled_camera_sees_every_other_pixel() -> None:
+    sub = CAM.subsampled(2)
+    assert (sub.width, sub.height) == (16, 12)
+    P = np.array([[0.01, -0.02, 0.5], [0.03, 0.01, 0.4]])
+    np.testing.assert_allclose(sub.project(P) * 2, CAM.project(P))
+    with pytest.raises(ValueError, match="step must be a positive integer"):
+        CAM.subsampled(0)

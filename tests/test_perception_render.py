@@ -128,3 +128,38 @@ def test_render_demonstration_checks_shapes(tmp_path: Path) -> None:
         render_demonstration(box, box, np.eye(4), np.eye(4), [0.0], CAM, tmp_path)
     with pytest.raises(ValueError, match="times has shape"):
         render_demonstration(box, box, np.eye(4), np.eye(4)[None], [0.0, 1.0], CAM, tmp_path)
+
+
+def test_up_turns_the_hand_and_the_table() -> None:
+    from apo.perception.render import _table_triangles
+
+    # The same object with y up instead of z up: the hand and the table turn with it.
+    peg_z = box_triangles((0.02, 0.02, 0.05), (0, 0, 0.025))
+    R = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # z up -> y up
+    peg_y = (peg_z[0] @ R.T, peg_z[1])
+    Vz, _ = hand_triangles(peg_z)
+    Vy, _ = hand_triangles(peg_y, up=(0, 1, 0))
+    np.testing.assert_allclose(np.sort(Vy, axis=0), np.sort(Vz @ R.T, axis=0), atol=1e-12)
+    T, _ = _table_triangles(peg_y, up=(0.0, 2.0, 0.0))
+    np.testing.assert_allclose(T[:, 1], 0.0, atol=1e-12)  # under the object, perpendicular to y
+    with pytest.raises(ValueError, match="up must be a non-zero 3-vector"):
+        hand_triangles(peg_z, up=(0, 0, 0))
+
+
+def test_static_scene_composited_once_equals_full_render(tmp_path: Path) -> None:
+    # render_demonstration renders the table and environment once and composites the
+    # grasped object per frame; without noise that is the z-buffer of the whole scene.
+    X_WC = pose_looking_at([0.0, -0.3, 0.3], [0.0, 0.0, 0.0])
+    cam = Camera(200.0, 200.0, 79.5, 59.5, 160, 120, 1e-4, X_WC)
+    env = box_triangles((0.06, 0.06, 0.02), (0, 0, 0.01))
+    peg = box_triangles((0.02, 0.02, 0.04), (0, 0, 0.02))
+    X_CE = invert_pose(X_WC)
+    X_EG = np.eye(4)[None].copy()
+    X_EG[0, :3, 3] = [0.03, 0.0, 0.01]  # half in front of, half behind the block's top
+    out = render_demonstration(
+        peg, env, X_CE, X_EG, [0.0], cam, tmp_path, noise=DepthNoise.none(), background=False
+    )
+    full = render_scene([env, peg], [X_CE, X_CE @ X_EG[0]], cam)
+    depth = open_frames(out).depth(0)
+    table = (full.depth == 0) & (depth > 0)  # the table is only in the written frame
+    np.testing.assert_allclose(depth[~table], full.depth[~table], atol=1e-4)

@@ -19,7 +19,7 @@ from apo.spatial import invert_pose, pose_from_twist, rotation_angle, transform_
 
 pytest.importorskip("open3d")
 
-from apo.perception.register import ModelCloud, initialise, register
+from apo.perception.register import ModelCloud, free_space_violation, initialise, register
 from apo.perception.track import TrackOptions, track_frames
 
 NOISE = DepthNoise(sigma_1m=1.5e-3)
@@ -100,6 +100,25 @@ def test_robust_kernel_rejects_outliers() -> None:
     pos, rot = errors(tukey.X_CM, X_true)
     assert pos < 0.1 and rot < 0.1
     assert 0.7 < tukey.fitness < 0.85  # the clutter is not explained
+
+
+def test_free_space_check_on_every_other_pixel_estimates_the_same_fraction() -> None:
+    from apo.perception.render import rasterize
+
+    cam, X_CE = example_camera(320, 240)
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    X_true = X_CE @ insertion_trajectory(5)[1][1]
+    depth, _ = rasterize(transform_points(X_true, peg[0]), peg[1], cam)
+    fractions = []
+    for shift in (0.0, 0.012):  # the model 12 mm towards the camera: the peg is seen behind it
+        X = X_true.copy()
+        X[:3, 3] -= shift * X[:3, 3] / np.linalg.norm(X[:3, 3])
+        full = free_space_violation(X, model, depth, cam)
+        half = free_space_violation(X, model, depth, cam, step=2)
+        assert abs(half - full) < 0.05
+        fractions.append(full)
+    assert fractions[0] == 0.0 and fractions[1] > 0.3
 
 
 def test_initialise_finds_pose_from_scratch() -> None:

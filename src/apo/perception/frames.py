@@ -139,6 +139,21 @@ class Camera:
             self.X_WC,
         )
 
+    def subsampled(self, step: int) -> Camera:
+        """Return the camera of the image ``image[::step, ::step]`` (every step-th pixel)."""
+        if step < 1:
+            raise ValueError(f"step must be a positive integer, got {step}")
+        return Camera(
+            self.fx / step,
+            self.fy / step,
+            self.cx / step,
+            self.cy / step,
+            -(-self.width // step),
+            -(-self.height // step),
+            self.depth_scale,
+            self.X_WC,
+        )
+
     def to_json(self) -> dict[str, Any]:
         """Return the ``camera.json`` dictionary (``pose`` as ``[x, y, z, qw, qx, qy, qz]``)."""
         out: dict[str, Any] = {

@@ -189,7 +189,10 @@ class _Segmenter:
         else:
             assert self.plane is not None
             fg = foreground_from_plane(depth, cam, self.plane, threshold=t)
-        return fg & self.options.colour.mask(rgb)
+        # The colour test only where the depth found something (a fraction of the pixels).
+        out = np.zeros(fg.shape, dtype=bool)
+        out[fg] = self.options.colour.mask(rgb[fg][:, None, :])[:, 0]
+        return out
 
 
 Window = tuple[int, int, int, int]
