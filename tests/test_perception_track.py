@@ -205,6 +205,48 @@ def test_recognition_from_rendered_frames_full_demo_with_hand(tmp_path: Path) ->
     assert np.median(rot) < 0.15 and rot.max() < 0.5
 
 
+@pytest.mark.parametrize(
+    "name", ["peg_in_hole_2d", "square_peg_in_hole", "block_on_table_to_corner", "block_tipping"]
+)
+def test_synthetic_camera_keeps_the_demonstration_in_view(name: str) -> None:
+    from apo.perception.example import polyhedron_triangles, synthetic_camera
+    from apo.synthetic import all_demos
+
+    d = all_demos()[name]
+    cam, X_CE = synthetic_camera(d, 320, 240)
+    G = polyhedron_triangles(d.grasped)[0]
+    P = [transform_points(X_CE, d.environment.vertices)]
+    P += [transform_points(X_CE @ X, G) for X in d.X_EG_true]
+    uv = cam.project(np.vstack(P))
+    assert np.all(np.vstack(P)[:, 2] > 0.1)  # in front of the camera, and inside the image:
+    assert np.all((uv >= 0) & (uv <= [cam.width - 1, cam.height - 1]))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name", ["square_peg_in_hole", "block_on_table_to_corner", "block_tipping"]
+)
+def test_recognition_from_rendered_synthetic_demonstrations(tmp_path: Path, name: str) -> None:
+    """The other apo.synthetic demonstrations, rendered at 320x240 from their true poses."""
+    from apo.perception.example import render_synthetic
+    from apo.recognition import recognize
+    from apo.synthetic import all_demos
+
+    d = all_demos()[name]
+    r = render_synthetic(d, tmp_path, width=320, height=240, noise=NOISE, seed=1)
+    res = track_frames(
+        r.frames, r.grasped, r.environment, units="m", init_grasped=r.X_CG0, init_environment=r.X_CE
+    )
+    assert not res.lost.any()
+    pos, rot = errors(res.X_EG, d.X_EG_true)
+    assert np.median(pos) < 0.25 and pos.max() < 1.0
+    assert np.median(rot) < 0.5 and rot.max() < 1.0
+    truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
+    observed = recognize(d.grasped, d.environment, res.times, res.X_EG)
+    assert observed.subskill_sequence() == truth.subskill_sequence()
+    assert [s.id for s in observed.states] == [s.id for s in truth.states]
+
+
 def test_tracking_without_background_frames_uses_the_table_plane(tmp_path: Path) -> None:
     cam, X_CE = example_camera(320, 240)
     peg, slot = peg_and_slot()
