@@ -47,8 +47,10 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--out", metavar="DIR", help="output folder (default: <DEMO stem>-task)")
     p.add_argument("--json", action="store_true", help="print task.json instead of the table")
-    p.add_argument("--grasped", metavar="MODEL", help="grasped model file (CSV input)")
-    p.add_argument("--environment", metavar="MODEL", help="environment model file (CSV input)")
+    p.add_argument("--grasped", metavar="MODEL", help="grasped model file (CSV or frames input)")
+    p.add_argument(
+        "--environment", metavar="MODEL", help="environment model file (CSV or frames input)"
+    )
     p.add_argument(
         "--units", choices=_UNITS, default=None, help="length unit of the input (default: mm)"
     )

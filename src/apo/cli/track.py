@@ -224,12 +224,14 @@ def add_tracking_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--colour-tolerance",
         type=float,
+        metavar="T",
         default=0.05,
         help="chromaticity tolerance of --colour (default 0.05)",
     )
     p.add_argument(
         "--min-confidence",
         type=float,
+        metavar="C",
         default=0.8,
         help="frames below this confidence are re-initialised, then lost (default 0.8)",
     )
