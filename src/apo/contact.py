@@ -156,6 +156,8 @@ _DENSE_LIMIT = 40_000
 _BATCH_DENSE_FACTOR = 8
 # Frames per batch: about this many vertices and edges of both models over the batch.
 _BATCH_PRIMITIVES = 16_384
+# Bounding-sphere tests use radius * this: rounding never drops a pair within the threshold.
+_SPHERE_MARGIN = 1.0 + 1e-9
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 _EMPTY_F = np.zeros(0, dtype=np.float64)
 _EMPTY_3 = np.zeros((0, 3), dtype=np.float64)
@@ -430,6 +432,11 @@ class _ModelData:
         self.TA, self.TB, self.TC = V[tri[:, 0]], V[tri[:, 1]], V[tri[:, 2]]
         self.tri_n = poly.face_normals[self.tri_face]
         self.tri_off = poly.face_offsets[self.tri_face]
+        # bounding spheres of the triangles
+        self.tri_c = (self.TA + self.TB + self.TC) / 3.0
+        self.tri_r = np.max(
+            [np.linalg.norm(T - self.tri_c, axis=1) for T in (self.TA, self.TB, self.TC)], axis=0
+        )
         self.lo = V.min(axis=0)
         self.hi = V.max(axis=0)
         self.scale = float(poly.scale)
@@ -636,7 +643,29 @@ def _point_triangle_distance(
         q = np.where(m[:, None], b, q)
         m = (d1 <= 0) & (d2 <= 0)
         q = np.where(m[:, None], a, q)
-    return np.asarray(np.linalg.norm(p - q, axis=1), dtype=np.float64)
+    return _norm(p - q)
+
+
+def _norm(x: FloatArray) -> FloatArray:
+    """Row norms of an (n, 3) array (faster than ``np.linalg.norm(x, axis=1)``)."""
+    return np.asarray(np.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + x[:, 2] ** 2), dtype=np.float64)
+
+
+def _cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross products of (n, 3) arrays (cheaper than ``np.cross``)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _sq_dist(P: FloatArray, C: FloatArray) -> FloatArray:
+    """Squared distances (n, m) between the rows of P (n, 3) and C (m, 3)."""
+    out = np.square(P[:, None, 0] - C[None, :, 0])
+    out += np.square(P[:, None, 1] - C[None, :, 1])
+    out += np.square(P[:, None, 2] - C[None, :, 2])
+    return out
 
 
 @dataclass
@@ -682,9 +711,10 @@ def _near_features(
     dense = len(Q) * max(md.nv, len(md.TA)) <= limit
     # vertices
     if dense:
-        dvv = np.linalg.norm(Q[:, None, :] - md.V[None, :, :], axis=2)
-        ii, jj = np.nonzero(dvv <= d)
-        vv = (rows[ii], jj.astype(np.int64), dvv[ii, jj])
+        ii, jj = np.nonzero(_sq_dist(Q, md.V) <= (d * _SPHERE_MARGIN) ** 2)
+        dist = _norm(Q[ii] - md.V[jj])
+        ok = dist <= d
+        vv = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
         i, j = _pairs_from_ball(tv.query_ball_point(Q, d), np.arange(len(Q)))
@@ -692,21 +722,21 @@ def _near_features(
         vv = (rows[i], j, dist)
     # edges (dense: pre-filtered by the edges' bounding spheres)
     if dense:
-        gap = np.linalg.norm(Q[:, None, :] - md.E_mid[None, :, :], axis=2)
-        ii, jj = np.nonzero(gap <= (md.E_half + d) * (1.0 + 1e-9))
+        ii, jj = np.nonzero(_sq_dist(Q, md.E_mid) <= ((md.E_half + d) * _SPHERE_MARGIN) ** 2)
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
         i, s = _pairs_from_ball(te.query_ball_point(Q, d + er), np.arange(len(Q)))
         key = np.unique(i * md.ne + eown[s])
         ii, jj = key // md.ne, key % md.ne
     cl, _ = closest_point_on_segment(Q[ii], md.E0[jj], md.E1[jj])
-    dist = np.linalg.norm(Q[ii] - cl, axis=1)
+    dist = _norm(Q[ii] - cl)
     ok = dist <= d
     ee = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
-    # faces via triangles, pre-filtered by the plane distance
+    # faces via triangles, pre-filtered by the plane distance (and bounding spheres)
     if dense:
-        height = np.abs(Q @ md.tri_n.T - md.tri_off[None, :])
-        ii, tt_ = np.nonzero(height <= d)
+        near = np.abs(Q @ md.tri_n.T - md.tri_off[None, :]) <= d
+        near &= _sq_dist(Q, md.tri_c) <= ((md.tri_r + d) * _SPHERE_MARGIN) ** 2
+        ii, tt_ = np.nonzero(near)
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
         i, s = _pairs_from_ball(tt.query_ball_point(Q, d + tr), np.arange(len(Q)))
@@ -940,19 +970,19 @@ def _arc_rays_batch(
         np.stack([-z, np.zeros(n), x], axis=1),
         np.stack([np.zeros(n), z, -y], axis=1),
     )
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    Q = np.stack([t1, np.cross(axis, t1)], axis=1)  # (n, 2, 3)
-    A2 = np.einsum("pmk,pjk->pmj", rows, Q)  # (n, m, 2)
-    nr = np.linalg.norm(A2, axis=2)
+    t1 /= _norm(t1)[:, None]
+    Q = np.stack([t1, _cross_rows(axis, t1)], axis=1)  # (n, 2, 3)
+    A2 = rows @ Q.transpose(0, 2, 1)  # (n, m, 2)
+    nr = np.hypot(A2[:, :, 0], A2[:, :, 1])
     valid = nr > sin_tol
     with np.errstate(divide="ignore", invalid="ignore"):
         perp = np.stack([-A2[:, :, 1], A2[:, :, 0]], axis=2) / np.where(valid, nr, 1.0)[:, :, None]
     cand = np.stack([perp, -perp], axis=2).reshape(n, 2 * m_max, 2)  # row0+, row0-, ...
     c_valid = np.repeat(valid, 2, axis=1)
     c_prio = np.repeat(np.broadcast_to(from_e, valid.shape), 2, axis=1)
-    ok = c_valid & np.all(np.einsum("pck,pmk->pcm", cand, A2) >= -sin_tol, axis=2)
-    mean = np.einsum("pck,pc->pk", cand, ok.astype(np.float64))
-    nm = np.linalg.norm(mean, axis=1)
+    ok = c_valid & np.all((cand @ A2.transpose(0, 2, 1)) >= -sin_tol, axis=2)
+    mean = (ok[:, None, :].astype(np.float64) @ cand)[:, 0]
+    nm = np.hypot(mean[:, 0], mean[:, 1])
     good = ok.any(axis=1) & (nm >= 1e-9)
     mean /= np.where(good, nm, 1.0)[:, None]
     ang = np.arctan2(
@@ -969,10 +999,10 @@ def _arc_rays_batch(
     score = np.where(okp, 1.0 - 1e-3 * np.abs(ang - 0.5 * (a_hi + a_lo)[:, None]), -np.inf)
     pick = cand[ar, np.argmax(score, axis=1)]
     both = lo + hi
-    both /= np.maximum(np.linalg.norm(both, axis=1), 1e-300)[:, None]
+    both /= np.maximum(np.hypot(both[:, 0], both[:, 1]), 1e-300)[:, None]
     one = np.where(okp.any(axis=1)[:, None], pick, both)
     r2 = np.where(collapsed[:, None, None], one[:, None, :], np.stack([lo, hi], axis=1))
-    rays = np.einsum("pak,pkj->paj", r2, Q)  # (n, 2, 3)
+    rays = r2 @ Q  # (n, 2, 3)
     count = np.where(good, np.where(collapsed, 1, 2), 0).astype(np.int64)
     return _snap_batch(PG, PE, pg, pe, R, rays, count, merge_angle)
 
@@ -998,12 +1028,12 @@ def _snap_batch(
     in_ray = np.arange(2)[None, :] < count[:, None]  # (n, 2)
     NE = _padded(PE.normals, PE.norm_ptr[pe], PE.nnorm[pe])
     NG = -_padded(PG.normals, PG.norm_ptr[pg], PG.nnorm[pg])
-    NG = np.einsum("kij,kmj->kmi", R, NG)
+    NG = NG @ R.transpose(0, 2, 1)
     out = rays.copy()
     snapped = np.zeros((n, 2), dtype=bool)
     ar = np.arange(n)[:, None]
     for N, cnt in ((NG, PG.nnorm[pg]), (NE, PE.nnorm[pe])):  # E last: it wins
-        dots = np.einsum("paj,pkj->pak", rays, N)
+        dots = rays @ N.transpose(0, 2, 1)
         dots = np.where(np.arange(N.shape[1])[None, None, :] < cnt[:, None, None], dots, -np.inf)
         best = np.argmax(dots, axis=2)  # (n, 2)
         hit = in_ray & (np.take_along_axis(dots, best[:, :, None], axis=2)[:, :, 0] >= cos_m)
@@ -1018,10 +1048,10 @@ def _snap_batch(
         m = r0 + r1
         out[two, 0] = np.where(
             same[:, None],
-            m / np.linalg.norm(m, axis=1)[:, None],
-            r0 / np.linalg.norm(r0, axis=1)[:, None],
+            m / _norm(m)[:, None],
+            r0 / _norm(r0)[:, None],
         )
-        out[two, 1] = r1 / np.linalg.norm(r1, axis=1)[:, None]
+        out[two, 1] = r1 / _norm(r1)[:, None]
         count[two[same]] = 1
     return count, out
 
@@ -1045,7 +1075,7 @@ def _edge_edge_rays_batch(
     n = len(pg)
     l0 = _rotate(R, PG.lin[PG.lin_ptr[pg]])
     l1 = PE.lin[PE.lin_ptr[pe]]
-    u = np.cross(l0, l1)
+    u = _cross_rows(l0, l1)
     nu = np.sqrt(_dot(u, u))
     solved = (np.abs(_dot(l0, l1)) < 0.999) & (nu > sin_tol)
     u = u / np.where(solved, nu, 1.0)[:, None]
@@ -1095,7 +1125,7 @@ def _pointed_rays_batch(
     cr = cr / np.where(keep, nc, 1.0)[:, :, None]
     prio = np.tile(from_e[iu] + from_e[ju], 2)
     cr = np.concatenate([cr, -cr], axis=1)
-    ok = np.tile(keep, 2) & np.all(np.einsum("npk,nmk->npm", cr, rows) >= -sin_tol, axis=2)
+    ok = np.tile(keep, 2) & np.all((cr @ rows.transpose(0, 2, 1)) >= -sin_tol, axis=2)
     out = []
     for i in range(n):
         sel = ok[i]
@@ -1240,8 +1270,8 @@ class ContactFinder:
         R, t = R_all[active], t_all[active]
         n_act = len(active)
         limit = _DENSE_LIMIT * (_BATCH_DENSE_FACTOR if n_act > 1 else 1)
-        VG = np.einsum("fij,vj->fvi", R, g.V) + t[:, None, :]  # G's vertices in E
-        VE_G = np.einsum("fji,fvj->fvi", R, e.V[None, :, :] - t[:, None, :])  # E's in G
+        VG = g.V @ R.transpose(0, 2, 1) + t[:, None, :]  # G's vertices in E
+        VE_G = (e.V[None, :, :] - t[:, None, :]) @ R  # E's in G
         near_g = _by_frame(
             _near_features(e, VG.reshape(-1, 3), d, naive=naive, dense_limit=limit), g.nv
         )
@@ -1329,33 +1359,26 @@ class ContactFinder:
         merge = 3.0 * self.angle_tol
         ga_code = g.offset[fa_k[w[starts]]] + el_a
         eb_code = e.offset[fb_k[w[starts]]] + el_b
-        per_frame: list[list[ContactElement]] = [[] for _ in range(n_act)]
-        gfeat, efeat = g.features, e.features
+        cnt = count.tolist()
+        normals = [extra[i] if i in extra else rays[i, : cnt[i]] for i in w[starts].tolist()]
         w_list = w.tolist()
-        for s, end, f, k, a, b, p in zip(
-            starts.tolist(),
-            ends.tolist(),
-            el_fr.tolist(),
-            el_kind.tolist(),
-            ga_code.tolist(),
-            eb_code.tolist(),
-            points,
-            strict=True,
-        ):
-            items = w_list[s:end]
-            if len(items) == 1:
-                i = items[0]
-                normals = extra[i] if i in extra else rays[i, : count[i]]
-            else:
-                normals = _dedupe(
-                    np.concatenate(
-                        [extra[i] if i in extra else rays[i, : count[i]] for i in items]
-                    ),
-                    merge,
-                )
-            per_frame[f].append(ContactElement(_KIND_LIST[k], gfeat[a], efeat[b], p, normals))
+        for j in np.flatnonzero(ends - starts > 1).tolist():  # several piece pairs: merge
+            items = w_list[starts[j] : ends[j]]
+            rays_j = [extra[i] if i in extra else rays[i, : cnt[i]] for i in items]
+            normals[j] = _dedupe(np.concatenate(rays_j), merge)
+        elements = list(
+            map(
+                ContactElement,
+                map(_KIND_LIST.__getitem__, el_kind.tolist()),
+                map(g.features.__getitem__, ga_code.tolist()),
+                map(e.features.__getitem__, eb_code.tolist()),
+                points,
+                normals,
+            )
+        )
+        bounds = np.searchsorted(el_fr, np.arange(n_act + 1)).tolist()
         for k, f in enumerate(active.tolist()):
-            states[f] = ContactState(tuple(per_frame[k]), touching[k])
+            states[f] = ContactState(tuple(elements[bounds[k] : bounds[k + 1]]), touching[k])
         return states
 
     def _cone_pairs(
@@ -1463,9 +1486,11 @@ class ContactFinder:
         if len(sel) * e.ne <= 10 * limit:  # box overlaps are cheap
             eb_lo = np.minimum(e.E0, e.E1)
             eb_hi = np.maximum(e.E0, e.E1)
-            ov = np.all(
-                (hi[sel, None, :] >= eb_lo[None]) & (lo[sel, None, :] <= eb_hi[None]), axis=2
-            )
+            ov = (hi[sel, None, 0] >= eb_lo[None, :, 0]) & (lo[sel, None, 0] <= eb_hi[None, :, 0])
+            for k in (1, 2):
+                ov &= (hi[sel, None, k] >= eb_lo[None, :, k]) & (
+                    lo[sel, None, k] <= eb_hi[None, :, k]
+                )
             ia, ib = np.nonzero(ov)
             ia = sel[ia]
         else:
@@ -1500,7 +1525,7 @@ class ContactFinder:
             return np.zeros(0, dtype=bool)
         g, e = self._g, self._e
         dg = _rotate(R[fr], g.edge_dir[ia])
-        cross = np.linalg.norm(np.cross(dg, e.edge_dir[ib]), axis=1)
+        cross = _norm(_cross_rows(dg, e.edge_dir[ib]))
         keep: BoolArray = cross > math.sin(self.angle_tol)
         # Endpoint coverage: G vertex near E edge, E vertex near G edge.
         f_, i_, j_, _ = near_g.e
