@@ -665,3 +665,93 @@ def test_fv_normal_in_a_face_face_contact_is_the_environment_face_normal() -> No
     assert kinds(state) == Counter({"VF": 1, "FV": 1, "EE": 2})
     for e in state.elements:
         np.testing.assert_allclose(e.normals, [[0, 0, 1]], atol=1e-12, err_msg=e.kind.value)
+
+
+# --------------------------------------------------------------------------------------------
+# Batched search (find_batch over (N, 4, 4) poses) against one frame at a time and naive
+# --------------------------------------------------------------------------------------------
+
+
+def _random_poses(G: Polyhedron, X: np.ndarray, d: float, n: int, seed: int) -> np.ndarray:
+    """``n`` poses near ``X``: twists of about ``d`` (metres, and d / size in radians)."""
+    rng = np.random.default_rng(seed)
+    xis = np.c_[rng.normal(size=(n, 3)) * d / G.scale, rng.normal(size=(n, 3)) * d]
+    return np.stack([pose_from_twist(xi) @ X for xi in xis])
+
+
+def _assert_same_states(a: list[ContactState], b: list[ContactState]) -> None:
+    assert len(a) == len(b)
+    for k, (x, y) in enumerate(zip(a, b, strict=True)):
+        assert x.key == y.key, k
+        assert x.touching == y.touching, k
+        for e, f in zip(x.elements, y.elements, strict=True):
+            assert e.normals.shape == f.normals.shape, (k, e.key)
+            np.testing.assert_allclose(e.point, f.point, atol=1e-12)
+            np.testing.assert_allclose(e.normals, f.normals, atol=1e-12)
+
+
+@pytest.mark.parametrize("kd", [False, True], ids=["dense", "kdtree"])
+@pytest.mark.parametrize("name", sorted(CONSISTENCY_SCENES))
+def test_batch_single_and_naive_agree_on_random_poses(
+    name: str, kd: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The batched search (every stage one numpy pass over the frames), the same one frame at
+    # a time and the all-pairs search with scalar cone tests find the same states: element
+    # keys, touching pairs, ray counts, points and normals, at poses up to ~3 thresholds
+    # off a contact (so contacts appear and disappear between frames).
+    import apo.contact
+
+    if kd:  # the k-d tree broad phase even for these small models
+        monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+    G, E, X = CONSISTENCY_SCENES[name]()
+    d = 3 * default_threshold(G, E)
+    poses = _random_poses(G, X, d, 12, seed=sorted(CONSISTENCY_SCENES).index(name))
+    finder = ContactFinder(G, E, threshold=d)
+    batch = finder.find_batch(poses)
+    assert any(s.elements for s in batch)
+    _assert_same_states(batch, [finder.find(P) for P in poses])
+    _assert_same_states(batch, [finder.find_naive(P) for P in poses])
+
+
+def test_batch_in_blocks_of_frames_and_with_far_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Blocks of 3 frames (the block size is a memory bound only) and frames far apart (no
+    # overlap of the bounding boxes) give the same states as one block.
+    import apo.contact
+
+    G, E, X = CONSISTENCY_SCENES["t_peg_seated"]()
+    poses = _random_poses(G, X, 3 * default_threshold(G, E), 10, seed=7)
+    poses[[2, 5]] = pose(t=(0.0, 0.5, 0.0)) @ X  # 50 cm away
+    finder = ContactFinder(G, E)
+    whole = finder.find_batch(poses)
+    assert whole[2].elements == () and whole[2].touching == frozenset()
+    monkeypatch.setattr(apo.contact, "_BATCH_PRIMITIVES", 3 * (2 * len(G.vertices) + len(G.edges)))
+    _assert_same_states(finder.find_batch(poses), whole)
+    _assert_same_states(finder.find_batch(list(poses)), whole)  # a list of 4x4 poses
+    assert finder.find_batch(np.zeros((0, 4, 4))) == []
+
+
+def test_batch_names_the_bad_pose() -> None:
+    finder = ContactFinder(CUBE, TABLE)
+    bad = np.stack([np.eye(4), np.full((4, 4), np.nan)])
+    with pytest.raises(ValueError, match="pose 1: X_EG has non-finite entries"):
+        finder.find_batch(bad)
+    with pytest.raises(ValueError, match="pose 0: X_EG's rotation part"):
+        finder.find_batch([np.diag([1.0, 1.0, 2.0, 1.0])])
+    with pytest.raises(ValueError, match="pose 1: X_EG must have shape"):
+        finder.find_batch([np.eye(4), np.eye(3)])
+
+
+@pytest.mark.realdata
+def test_batch_matches_single_on_the_real_demonstration(real_data_dir: Path) -> None:
+    # The first author's 41 poses at a 4 mm threshold: contacts appear from frame 12 on.
+    from apo.io.meshes import load_polyhedron
+    from apo.io.poses import load_demonstration
+
+    peg = load_polyhedron(real_data_dir / "peg.step")
+    hole = load_polyhedron(real_data_dir / "hole.step")
+    X = load_demonstration(real_data_dir / "peg_in_hole.pose.list").X_EG
+    finder = ContactFinder(peg, hole, threshold=0.004)
+    batch = finder.find_batch(X)
+    assert sum(1 for s in batch if s.elements) > 20
+    _assert_same_states(batch, [finder.find(P) for P in X])
+    _assert_same_states(batch[-3:], [finder.find_naive(P) for P in X[-3:]])
