@@ -181,10 +181,15 @@ def recognise_rendered_builtin(
     return truth, observed, pos, rot
 
 
-def test_recognition_from_rendered_frames_matches_true_poses(tmp_path: Path) -> None:
+# With the hand, seed 3: the second frame moves 12 mm with no velocity to predict it; an ICP
+# stopped on its iteration limit left it 1.7 mm off before the tracker let it settle.
+@pytest.mark.parametrize(("hand", "seed"), [(False, 0), (True, 3)])
+def test_recognition_from_rendered_frames_matches_true_poses(
+    tmp_path: Path, hand: bool, seed: int
+) -> None:
     """apo demo's example (peg_in_hole_2d, states A-H), rendered at 320x240 and tracked."""
     truth, observed, pos, rot = recognise_rendered_builtin(
-        tmp_path, width=320, height=240, n_frames=30, hand=False, seed=0
+        tmp_path, width=320, height=240, n_frames=30, hand=hand, seed=seed
     )
     assert len(truth.subskill_sequence()) == 9  # Fig. 25: 3 push-to pairs, 3 slides
     assert observed.subskill_sequence() == truth.subskill_sequence()
