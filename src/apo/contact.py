@@ -980,7 +980,9 @@ def _arc_rays_batch(
     cand = np.stack([perp, -perp], axis=2).reshape(n, 2 * m_max, 2)  # row0+, row0-, ...
     c_valid = np.repeat(valid, 2, axis=1)
     c_prio = np.repeat(np.broadcast_to(from_e, valid.shape), 2, axis=1)
-    ok = c_valid & np.all((cand @ A2.transpose(0, 2, 1)) >= -sin_tol, axis=2)
+    ok: BoolArray = c_valid.copy()  # on the right side of every row (few rows: a loop)
+    for j in range(m_max):
+        ok &= cand[:, :, 0] * A2[:, None, j, 0] + cand[:, :, 1] * A2[:, None, j, 1] >= -sin_tol
     mean = (ok[:, None, :].astype(np.float64) @ cand)[:, 0]
     nm = np.hypot(mean[:, 0], mean[:, 1])
     good = ok.any(axis=1) & (nm >= 1e-9)
@@ -995,12 +997,13 @@ def _arc_rays_batch(
     a_lo, a_hi = ang[ar, ilo], ang[ar, ihi]
     lo, hi = cand[ar, ilo], cand[ar, ihi]
     collapsed = (a_hi - a_lo) < merge_angle
-    okp = ok & c_prio
+    okp = np.asarray(ok & c_prio, dtype=bool)
     score = np.where(okp, 1.0 - 1e-3 * np.abs(ang - 0.5 * (a_hi + a_lo)[:, None]), -np.inf)
     pick = cand[ar, np.argmax(score, axis=1)]
     both = lo + hi
     both /= np.maximum(np.hypot(both[:, 0], both[:, 1]), 1e-300)[:, None]
-    one = np.where(okp.any(axis=1)[:, None], pick, both)
+    any_e: BoolArray = np.asarray(okp.any(axis=1), dtype=bool)
+    one = np.where(any_e[:, None], pick, both)
     r2 = np.where(collapsed[:, None, None], one[:, None, :], np.stack([lo, hi], axis=1))
     rays = r2 @ Q  # (n, 2, 3)
     count = np.where(good, np.where(collapsed, 1, 2), 0).astype(np.int64)
