@@ -5,10 +5,11 @@ Renders the built-in peg-in-slot insertion (``apo.perception.example``: 50 mm pa
 ``track_frames`` and reports
 
 - tracking frames/s: the per-frame loop, wall clock (reading the PNGs included; the
-  environment's one-off registration excluded, reported separately as ``setup_s``);
-- the main thread's CPU time per frame (``time.thread_time``): on the shared machine other
-  jobs take cores away and the wall-clock rate varies by a factor of two from run to run,
-  so the load average over the run is recorded too;
+  environment's one-off registration excluded, reported separately as ``setup_s``), the
+  best of ``--repeats`` runs on the same frames (all are kept in the JSON: on the shared
+  machine other jobs take cores away and one run can be half as fast as the next);
+- the main thread's CPU time per frame (``time.thread_time``, least of the runs), and the
+  1-minute load average after the best run;
 - median and 95th-percentile error of the grasped object's pose in the environment frame
   (``X_EG``; mm and deg) against the rendered truth, and the environment's error (both parts
   are symmetric under a half turn about their z axis: errors are taken up to it).
@@ -26,6 +27,7 @@ import platform
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +51,9 @@ def errors(X_est: np.ndarray, X_true: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pos, rot
 
 
-def run_case(n: int, sigma: float, hand: bool, width: int, height: int, seed: int) -> dict:
+def run_case(
+    n: int, sigma: float, hand: bool, width: int, height: int, seed: int, repeats: int = 2
+) -> dict[str, Any]:
     cam, X_CE = example_camera(width, height)
     peg, slot = peg_and_slot()
     times, X_EG = insertion_trajectory(n)
@@ -68,22 +72,32 @@ def run_case(n: int, sigma: float, hand: bool, width: int, height: int, seed: in
             hand=hand,
         )
         render_s = time.perf_counter() - t0
-        stamps: list[float] = []
-        cpu: list[float] = []
+        runs: list[dict[str, float]] = []
+        for _ in range(repeats):  # the same frames again: the best run is the least disturbed
+            stamps: list[float] = []
+            cpu: list[float] = []
 
-        def progress(i: int, total: int) -> None:
-            stamps.append(time.perf_counter())
-            cpu.append(time.thread_time())
+            def progress(
+                i: int, total: int, stamps: list[float] = stamps, cpu: list[float] = cpu
+            ) -> None:
+                stamps.append(time.perf_counter())
+                cpu.append(time.thread_time())
 
-        t0 = time.perf_counter()
-        res = track_frames(
-            tmp, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE,
-            progress=progress,
-        )  # fmt: skip
-        total_s = time.perf_counter() - t0
-        load = os.getloadavg()[0]
-    setup_s = total_s - (stamps[-1] - stamps[0]) - (stamps[1] - stamps[0])
-    fps = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+            t0 = time.perf_counter()
+            res = track_frames(
+                tmp, peg, slot, units="m", init_grasped=X_CE @ X_EG[0], init_environment=X_CE,
+                progress=progress,
+            )  # fmt: skip
+            total_s = time.perf_counter() - t0
+            runs.append(
+                {
+                    "fps": (len(stamps) - 1) / (stamps[-1] - stamps[0]),
+                    "cpu_ms": (cpu[-1] - cpu[0]) / (len(cpu) - 1) * 1e3,
+                    "setup_s": total_s - (stamps[-1] - stamps[0]) - (stamps[1] - stamps[0]),
+                    "load": os.getloadavg()[0],
+                }
+            )
+    best = max(runs, key=lambda r: r["fps"])
     ok = ~res.lost
     pos, rot = errors(res.X_EG[ok], X_EG[ok])
     env_pos, env_rot = errors(res.X_CE[None], X_CE[None])
@@ -93,10 +107,11 @@ def run_case(n: int, sigma: float, hand: bool, width: int, height: int, seed: in
         "hand": hand,
         "frames": n,
         "lost": int(res.lost.sum()),
-        "fps": fps,
-        "cpu_ms_per_frame": (cpu[-1] - cpu[0]) / (len(cpu) - 1) * 1e3,
-        "load_average_1min": load,
-        "setup_s": setup_s,
+        "fps": best["fps"],
+        "fps_runs": [r["fps"] for r in runs],
+        "cpu_ms_per_frame": min(r["cpu_ms"] for r in runs),
+        "load_average_1min": best["load"],
+        "setup_s": min(r["setup_s"] for r in runs),
         "render_s": render_s,
         "median_pos_mm": float(np.median(pos)),
         "p95_pos_mm": float(np.percentile(pos, 95)),
@@ -112,11 +127,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--quick", action="store_true", help="320x240, 3 levels")
+    ap.add_argument(
+        "--repeats", type=int, default=2, help="tracking runs per case; the fastest is reported"
+    )
     args = ap.parse_args()
     w, h = (320, 240) if args.quick else (640, 480)
     levels = [0.0, REALISTIC, 6.0e-3] if args.quick else LEVELS
     cases = [(s, False) for s in levels] + [(REALISTIC, True)]
-    rows = [run_case(args.frames, s, hand, w, h, seed=k) for k, (s, hand) in enumerate(cases)]
+    rows = [
+        run_case(args.frames, s, hand, w, h, seed=k, repeats=args.repeats)
+        for k, (s, hand) in enumerate(cases)
+    ]
     head = (
         f"{'sigma@1m':>9} {'@0.33m':>7} {'hand':>5} {'fps':>6} {'cpu ms':>6} {'load':>5} "
         f"{'setup s':>7} {'lost':>4} "
