@@ -7,9 +7,11 @@ crossings of non-parallel edges; each candidate is snapped to the lowest-dimensi
 of each object within the threshold, the local solids there are split into convex pieces,
 and every pair of pieces that touch gives one element whose separating normals are the
 extreme rays of ``N = T_G* ∩ (-T_E*)`` (``docs/contacts.md``). :class:`ContactFinder`
-caches per-model data for use over many frames; :func:`find_contacts_naive` is the plain
-all-pairs reference; :func:`element_residuals` gives the residuals ``f_i(X_EG)`` of the
-elements and their Jacobians for pose correction (paper 4.3.1).
+caches per-model data for use over many frames and searches a whole sequence of poses at
+once (:meth:`ContactFinder.find_batch`: every stage is a numpy pass over a block of frames
+and over all candidate elements); :func:`find_contacts_naive` is the plain all-pairs
+reference; :func:`element_residuals` gives the residuals ``f_i(X_EG)`` of the elements and
+their Jacobians for pose correction (paper 4.3.1).
 
 Everything is in the environment frame E, in metres; twists are ``[omega; v]`` applied on
 the left (``docs/conventions.md``).
@@ -1187,6 +1189,23 @@ class ContactFinder:
     >>> finder = ContactFinder(cube, table)
     >>> [e.kind.value for e in finder.find(np.eye(4)).elements]
     ['VF', 'VF', 'VF', 'VF']
+
+    A whole sequence at once (much faster per frame than one :meth:`find` per pose):
+
+    >>> X = np.stack([np.eye(4), np.eye(4)])
+    >>> X[1, 2, 3] = 0.5  # lifted by 50 cm
+    >>> [len(s.elements) for s in finder.find_batch(X)]
+    [4, 0]
+
+    Notes
+    -----
+    :meth:`find` is :meth:`find_batch` of one pose. Small models are searched in blocks of
+    frames, each stage one numpy pass over the block: broad phase (bounding boxes), the
+    features near each vertex (all pairs pruned by bounding spheres, or k-d trees over
+    samples for large models), the edge pairs, the touching pairs, the snapping, the cone
+    tests of the common cases (a half-space on either side, edge-vertex, edge-edge,
+    vertex-vertex) and the contact points. The rest (nearly parallel lineality, merged rays)
+    goes through the scalar code that :meth:`find_naive` uses for every pair.
     """
 
     def __init__(
@@ -1785,15 +1804,16 @@ def find_contacts(
 def find_contacts_batch(
     grasped: Polyhedron,
     environment: Polyhedron,
-    X_EG_seq: Iterable[npt.ArrayLike],
+    X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike,
     *,
     threshold: float | None = None,
     angle_tol: float | None = None,
 ) -> list[ContactState]:
-    """Contact states at each pose of ``X_EG_seq`` (4x4 poses of G in E, metres).
+    """Contact states at each pose of ``X_EG_seq`` (N x 4 x 4 poses of G in E, metres).
 
     Same parameters and result as :func:`find_contacts`, one state per pose; the per-model
-    data (k-d trees, local cones) is computed once.
+    data (k-d trees, local cones) is computed once and the search is vectorised over the
+    poses (:meth:`ContactFinder.find_batch`).
     """
     finder = ContactFinder(grasped, environment, threshold=threshold, angle_tol=angle_tol)
     return finder.find_batch(X_EG_seq)
@@ -1812,7 +1832,7 @@ def find_contacts_naive(
     Every vertex is measured against every face polygon of the other model
     (:func:`apo.geometry.point_face_distance`), every edge and vertex, and every edge against
     every edge, with no broad phase, and every pair of convex pieces goes through the scalar
-    cone intersection (the fast search batches the (edge, vertex) ones); used to test and
+    cone intersection (the fast search solves the common cases vectorised); used to test and
     benchmark the fast search.
     """
     finder = ContactFinder(grasped, environment, threshold=threshold, angle_tol=angle_tol)
