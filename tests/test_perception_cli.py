@@ -185,6 +185,8 @@ def test_demo_from_frames_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtu
         (["--from-frames", "--noise-mm", "1"], "--noise-mm is the pose noise of the default demo"),
         (["--from-frames", "--resolution", "640"], "--resolution: expected WxH"),
         (["--from-frames", "--depth-noise", "-1"], "--depth-noise must be a non-negative"),
+        (["--resolution", "320x240"], "--resolution applies to --from-frames only"),
+        (["--depth-noise", "1"], "--depth-noise applies to --from-frames only"),
     ],
 )
 def test_demo_from_frames_bad_options(

@@ -128,6 +128,12 @@ def demonstration_from_args(args: argparse.Namespace) -> DemoInput:
     """Return the demonstration the arguments ask for (the built-in example by default)."""
     if getattr(args, "from_frames", False):
         return _demonstration_from_frames(args)
+    for flag, given in (
+        ("--resolution", getattr(args, "resolution", DEFAULT_RESOLUTION) != DEFAULT_RESOLUTION),
+        ("--depth-noise", getattr(args, "depth_noise", None) is not None),
+    ):
+        if given:
+            raise InputFormatError(f"{flag} applies to --from-frames only")
     synthetic = importlib.import_module("apo.synthetic")
 
     for flag, v in (("--noise-mm", args.noise_mm), ("--noise-deg", args.noise_deg)):
