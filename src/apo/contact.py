@@ -1303,31 +1303,7 @@ class ContactFinder:
         ee = self._edge_pairs(VG, R, t, d, naive=naive, limit=limit)
         touching = self._touching(near_g, near_e, ee, n_act)
 
-        # Candidates (G snapped feature, E snapped feature), in the order of the scalar search:
-        # G's vertices, E's vertices, then edge pairs; duplicates dropped.
-        sg, se = _snap(near_g), _snap(near_e)
-        keep = self._ee_candidates(ee, near_g, near_e, R)
-        ef_, ea_, eb_ = ee[0][keep], ee[1][keep], ee[2][keep]
-        cat = np.concatenate
-        fr = cat([sg[0], se[0], ef_])
-        gkind = cat([np.zeros_like(sg[1]), se[2], np.ones_like(ea_)])
-        gcode = cat([sg[1], g.offset[se[2]] + se[3], g.nv + ea_])
-        ekind = cat([sg[2], np.zeros_like(se[1]), np.ones_like(eb_)])
-        ecode = cat([e.offset[sg[2]] + sg[3], se[1], e.nv + eb_])
-        src = cat([np.zeros_like(sg[1]), np.ones_like(se[1]), np.full_like(ea_, 2)])
-        grp = cat([sg[4], se[4], np.zeros_like(ea_)])
-        pos = cat([sg[1], se[1], ea_ * e.ne + eb_])
-        order = np.lexsort((pos, grp, src, fr))
-        code = (fr[order] * g.n_all + gcode[order]) * e.n_all + ecode[order]
-        _, first = np.unique(code, return_index=True)
-        order = order[np.sort(first)]
-        fr, gkind, gcode, ekind, ecode = (
-            fr[order],
-            gkind[order],
-            gcode[order],
-            ekind[order],
-            ecode[order],
-        )
+        fr, gkind, gcode, ekind, ecode = self._candidates(near_g, near_e, ee, R)
 
         # Work items: every pair of convex pieces of the two snapped features.
         gs, gc = g.piece_ranges(gcode)
@@ -1402,6 +1378,40 @@ class ContactFinder:
         for k, f in enumerate(active.tolist()):
             states[f] = ContactState(tuple(elements[bounds[k] : bounds[k + 1]]), touching[k])
         return states
+
+    def _candidates(
+        self,
+        near_g: _NearF,
+        near_e: _NearF,
+        ee: tuple[IntArray, IntArray, IntArray],
+        R: FloatArray,
+    ) -> tuple[IntArray, IntArray, IntArray, IntArray, IntArray]:
+        """Candidate (G feature, E feature) pairs, as (frame, kind, primitive code) of each.
+
+        Returns (frame, G kind code, G primitive code, E kind code, E primitive code). Each
+        vertex snapped to its lowest-dimensional (then nearest) feature of the other
+        model within the threshold, and the edge pairs of :meth:`_ee_candidates`; in the
+        order of the scalar search (G's vertices, E's vertices, edge pairs), duplicates
+        dropped.
+        """
+        g, e = self._g, self._e
+        sg, se = _snap(near_g), _snap(near_e)
+        keep = self._ee_candidates(ee, near_g, near_e, R)
+        ef_, ea_, eb_ = ee[0][keep], ee[1][keep], ee[2][keep]
+        cat = np.concatenate
+        fr = cat([sg[0], se[0], ef_])
+        gkind = cat([np.zeros_like(sg[1]), se[2], np.ones_like(ea_)])
+        gcode = cat([sg[1], g.offset[se[2]] + se[3], g.nv + ea_])
+        ekind = cat([sg[2], np.zeros_like(se[1]), np.ones_like(eb_)])
+        ecode = cat([e.offset[sg[2]] + sg[3], se[1], e.nv + eb_])
+        src = cat([np.zeros_like(sg[1]), np.ones_like(se[1]), np.full_like(ea_, 2)])
+        grp = cat([sg[4], se[4], np.zeros_like(ea_)])
+        pos = cat([sg[1], se[1], ea_ * e.ne + eb_])
+        order = np.lexsort((pos, grp, src, fr))
+        code = (fr[order] * g.n_all + gcode[order]) * e.n_all + ecode[order]
+        _, first = np.unique(code, return_index=True)
+        order = order[np.sort(first)]
+        return fr[order], gkind[order], gcode[order], ekind[order], ecode[order]
 
     def _cone_pairs(
         self, pg: IntArray, pe: IntArray, R: FloatArray, *, naive: bool
