@@ -186,6 +186,7 @@ def _check_poses(X_seq: Iterable[npt.ArrayLike] | npt.ArrayLike) -> FloatArray:
     """Validate poses as :func:`_check_pose` does, vectorised; returns shape (N, 4, 4)."""
     if isinstance(X_seq, np.ndarray) and X_seq.ndim == 3:
         M = np.asarray(X_seq, dtype=np.float64)
+        items: Sequence[Any] | FloatArray = M
     else:
         items = list(X_seq)  # type: ignore[arg-type]
         if not items:
@@ -204,7 +205,7 @@ def _check_poses(X_seq: Iterable[npt.ArrayLike] | npt.ArrayLike) -> FloatArray:
             good &= np.linalg.det(np.where(np.isfinite(R), R, 0.0)) > 0
         ok = bool(good.all())
     if not ok:  # find the culprit and say what is wrong with it
-        for k, X in enumerate(M if M.ndim == 3 else list(X_seq)):  # type: ignore[arg-type]
+        for k, X in enumerate(items):
             try:
                 _check_pose(X)
             except ValueError as exc:
