@@ -1601,20 +1601,21 @@ class ContactFinder:
         if len(P) == 0:
             return [frozenset()] * n_frames
         # Frames with the same primitive pairs have the same touching set: expand one of each.
-        pair = P * e.n_all + Qe
-        order = np.lexsort((pair, F))
-        F, P, Qe, pair = F[order], P[order], Qe[order], pair[order]
-        bounds = np.searchsorted(F, np.arange(n_frames + 1)).tolist()
-        rep_of: dict[bytes, int] = {}
         same_as = list(range(n_frames))
-        keep = np.ones(len(F), dtype=bool)
-        for f in range(n_frames):
-            lo, hi = bounds[f], bounds[f + 1]
-            rep = rep_of.setdefault(pair[lo:hi].tobytes(), f)
-            if rep != f:
-                same_as[f] = rep
-                keep[lo:hi] = False
-        F, P, Qe = F[keep], P[keep], Qe[keep]
+        if n_frames > 1:
+            pair = P * e.n_all + Qe
+            order = np.lexsort((pair, F))
+            F, P, Qe, pair = F[order], P[order], Qe[order], pair[order]
+            bounds = np.searchsorted(F, np.arange(n_frames + 1)).tolist()
+            rep_of: dict[bytes, int] = {}
+            keep = np.ones(len(F), dtype=bool)
+            for f in range(n_frames):
+                lo, hi = bounds[f], bounds[f + 1]
+                rep = rep_of.setdefault(pair[lo:hi].tobytes(), f)
+                if rep != f:
+                    same_as[f] = rep
+                    keep[lo:hi] = False
+            F, P, Qe = F[keep], P[keep], Qe[keep]
         lp, lq = g.star_len[P], e.star_len[Qe]
         n = lp * lq
         k = np.repeat(np.arange(len(P)), n)
