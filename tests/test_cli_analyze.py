@@ -109,7 +109,10 @@ def test_real_demonstration_end_to_end(real_data_dir, tmp_path, capsys):
     assert last.fig25[2] >= 1 and last.fig25[5] >= 2
     assert any(k.kind == "push_to" for k in trans[-1].subskills)
     assert all(t.direct for t in trans)
-    assert all(s.pose_converged for s in states if s.elements)
+    # Every state has a corrected pose but F: as the paper's Fig. 23(b) reports, the
+    # correction fails near the insertion (here it would turn the peg by 10-17 degrees and
+    # move a vertex by 20-30 mm: a distant solution, flagged, so F keeps its observed pose).
+    assert [s.id for s in states if s.elements and not s.pose_converged] == ["F"]
     # The paper's Fig. 25, transition by transition: (1), (4), (7) push-to in translation
     # and type I rotation; (2) slide in both; (3) none; (5) rotational slide only (only the
     # rotation restraining DOF grows); (6) the critical one, no sub-skill. C and F singular.

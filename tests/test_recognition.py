@@ -263,30 +263,6 @@ def test_poses_in_the_wrong_units_are_rejected():
 # ---------------------------------------------------------------------------------------------
 
 
-def test_batched_residuals_match_element_residuals():
-    from apo.contact import ContactFinder, element_residuals
-    from apo.recognition import _residuals_batch
-    from apo.shapes import t_peg, u_block
-    from apo.spatial import pose_from_twist
-
-    peg, block = t_peg(), u_block()
-    finder = ContactFinder(peg, block, threshold=0.003)
-    # The peg seated in the slot (slot bottom at y = 0.035): faces flush give VF, FV, EE,
-    # VE, EV and VV elements at once.
-    X0 = np.eye(4)
-    X0[1, 3] = 0.035
-    rng = np.random.default_rng(0)
-    X = np.array([pose_from_twist(rng.normal(0, 4e-4, 6)) @ X0 for _ in range(5)])
-    state = finder.find(X0)
-    kinds = {e.kind.value for e in state.elements}
-    assert len(state.elements) >= 4, kinds
-    r, J = _residuals_batch(peg, block, X, state.elements)
-    for i in range(len(X)):
-        r_ref, J_ref = element_residuals(peg, block, X[i], state.elements)
-        np.testing.assert_allclose(r[i], r_ref, atol=1e-12)
-        np.testing.assert_allclose(J[i], J_ref, atol=1e-9)
-
-
 def test_correct_poses_makes_contacts_hold_and_reports_residuals():
     from apo.contact import ContactFinder
     from apo.recognition import correct_poses

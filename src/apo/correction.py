@@ -322,8 +322,7 @@ class ContactConstraints:
     Raises
     ------
     ValueError
-        An element's feature id is out of range for its model, or an EE element's edges are
-        parallel (a parallel edge-edge contact is two VE/EV elements).
+        An element's feature id is out of range for its model.
 
     Examples
     --------
@@ -418,9 +417,12 @@ class ContactConstraints:
             else:  # EE
                 eg = feature(G, el.grasped, "e", i)
                 ev = feature(E, el.environment, "e", i)
+                # The edges' directions live in different frames (G's and E's), so whether
+                # they are parallel depends on the pose: an EE element found with the edges
+                # a degree apart may have exactly parallel model directions (a peg turned
+                # by noise about an axis-aligned slot). The rows guard the common normal at
+                # evaluation time, pose by pose.
                 u0, e0 = G.edge_directions[eg], E.edge_directions[ev]
-                if np.linalg.norm(np.cross(u0, e0)) < 1e-12:
-                    raise ValueError(f"element {i}: EE element with parallel edges")
                 ea.append(G.vertices[G.edges[eg, 0]])
                 eu.append(u0)
                 eb.append(E.vertices[E.edges[ev, 0]])

@@ -537,133 +537,6 @@ CORRECTION_MAX_ITER = 12
 CORRECTION_TOL = 1e-7
 
 
-def _perp_pair(u: FloatArray) -> FloatArray:
-    """Orthonormal basis (2, 3) of the plane perpendicular to the unit vector ``u``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    k1 = np.cross(u, a)
-    k1 /= np.linalg.norm(k1)
-    return np.stack([k1, np.cross(u, k1)])
-
-
-def _cross(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
-    """Cross product of (..., 3) arrays (broadcasting); faster than numpy's for small ones."""
-    x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    out: FloatArray = np.stack(
-        [
-            x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1],
-            x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2],
-            x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0],
-        ],
-        axis=-1,
-    )
-    return out
-
-
-def _residuals_batch(
-    grasped: Polyhedron,
-    environment: Polyhedron,
-    X: FloatArray,
-    elements: Sequence[ContactElement],
-) -> tuple[FloatArray, FloatArray]:
-    """Residuals ``f_i`` of ``elements`` and their Jacobians at every pose of ``X``.
-
-    The batched form of ``apo.contact.element_residuals`` (same rows, same signs):
-    returns ``r`` of shape (n, K) in metres and ``J`` of shape (n, K, 6) for a twist
-    ``[omega; v]`` applied on the left in the environment frame.
-    """
-    G, E = grasped, environment
-    R, t = X[:, :3, :3], X[:, :3, 3]
-    rs: list[FloatArray] = []
-    Js: list[FloatArray] = []
-
-    def row(r: FloatArray, jw: FloatArray, jv: FloatArray) -> None:
-        rs.append(r)
-        Js.append(np.concatenate([jw, jv], axis=1))
-
-    def g_point(v: FloatArray) -> FloatArray:
-        out: FloatArray = np.einsum("nij,j->ni", R, v) + t
-        return out
-
-    def g_dir(v: FloatArray) -> FloatArray:
-        out: FloatArray = np.einsum("nij,j->ni", R, v)
-        return out
-
-    for el in elements:
-        ga, eb = el.grasped[1], el.environment[1]
-        kind = el.kind.value
-        if kind == "VF":
-            p = g_point(G.vertices[ga])
-            nf = E.face_normals[eb]
-            row(p @ nf - E.face_offsets[eb], _cross(p, nf), np.broadcast_to(nf, p.shape))
-        elif kind == "FV":
-            q = E.vertices[eb]
-            w = g_dir(G.face_normals[ga])
-            p0 = g_point(G.face_offsets[ga] * G.face_normals[ga])
-            row(np.einsum("ni,ni->n", w, q - p0), _cross(w, q), -w)
-        elif kind == "EE":
-            a0, a1 = G.vertices[G.edges[ga]]
-            a = g_point(a0)
-            u = g_dir((a1 - a0) / np.linalg.norm(a1 - a0))
-            b0, b1 = E.vertices[E.edges[eb]]
-            ed = (b1 - b0) / np.linalg.norm(b1 - b0)
-            cr = _cross(u, ed)
-            nc = np.linalg.norm(cr, axis=1)
-            nc = np.where(nc > 1e-12, nc, 1e-12)
-            m = cr / nc[:, None]
-            ref = el.normals[0]
-            m = np.where((m @ ref)[:, None] < 0, -m, m)
-            diff = a - b0
-            c = (diff - np.einsum("ni,ni->n", m, diff)[:, None] * m) / nc[:, None]
-            sign = np.where(np.einsum("ni,ni->n", cr, m) > 0, 1.0, -1.0)
-            uc = np.einsum("ni,ni->n", u, c)
-            ue = u @ ed
-            jw = _cross(a, m) + sign[:, None] * (ed[None, :] * uc[:, None] - c * ue[:, None])
-            row(np.einsum("ni,ni->n", m, diff), jw, m)
-        elif kind == "VE":
-            p = g_point(G.vertices[ga])
-            b0, b1 = E.vertices[E.edges[eb]]
-            for kj in _perp_pair((b1 - b0) / np.linalg.norm(b1 - b0)):
-                row((p - b0) @ kj, _cross(p, kj), np.broadcast_to(kj, p.shape))
-        elif kind == "EV":
-            q = E.vertices[eb]
-            a0, a1 = G.vertices[G.edges[ga]]
-            a = g_point(a0)
-            for kj0 in _perp_pair((a1 - a0) / np.linalg.norm(a1 - a0)):
-                kj = g_dir(kj0)
-                row(np.einsum("ni,ni->n", kj, q - a), _cross(kj, q), -kj)
-        else:  # VV
-            p = g_point(G.vertices[ga])
-            q = E.vertices[eb]
-            for j in range(3):
-                unit = np.zeros(3)
-                unit[j] = 1.0
-                row(p[:, j] - q[j], _cross(p, unit), np.broadcast_to(unit, p.shape))
-    n = X.shape[0]
-    if not rs:
-        return np.zeros((n, 0)), np.zeros((n, 0, 6))
-    return np.stack(rs, axis=1), np.stack(Js, axis=1)
-
-
-def _poses_from_twists(xi: FloatArray) -> FloatArray:
-    """Batched ``apo.spatial.pose_from_twist``: (n, 6) twists ``[omega; v]`` -> (n, 4, 4)."""
-    w, v = xi[:, :3], xi[:, 3:]
-    th = np.linalg.norm(w, axis=1)
-    small = th < 1e-9
-    ths = np.where(small, 1.0, th)
-    A = np.where(small, 1.0, np.sin(ths) / ths)
-    B = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
-    C = np.where(small, 1.0 / 6.0, (1 - A) / ths**2)
-    W = np.zeros((len(xi), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    W2 = W @ W
-    eye = np.eye(3)[None]
-    out = np.tile(np.eye(4), (len(xi), 1, 1))
-    out[:, :3, :3] = eye + A[:, None, None] * W + B[:, None, None] * W2
-    out[:, :3, 3] = np.einsum("nij,nj->ni", eye + B[:, None, None] * W + C[:, None, None] * W2, v)
-    return out
-
-
 def correct_poses(
     grasped: Polyhedron,
     environment: Polyhedron,
@@ -672,12 +545,14 @@ def correct_poses(
     *,
     max_iter: int = CORRECTION_MAX_ITER,
     tol: float = CORRECTION_TOL,
+    threshold: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
     """Correct many poses so that the same contact elements hold exactly (paper 4.3.1).
 
-    Gauss-Newton on the residuals ``f_i`` of ``apo.contact.element_residuals``, batched
-    over the poses: at each step the minimum-norm least-squares twist (SVD pseudo-inverse)
-    that zeroes the linearised residuals is applied on the left.
+    :class:`apo.correction.ContactConstraints`: Gauss-Newton on the residuals ``f_i`` of
+    ``apo.contact.element_residuals``, batched over the poses, each step the SVD
+    least-squares twist applied on the left (``docs/correction.md``). A correction that
+    turns or moves G implausibly far (``apo.correction``'s limits) counts as failed.
 
     Parameters
     ----------
@@ -689,6 +564,9 @@ def correct_poses(
     max_iter : int
     tol : float
         Convergence: ``max_i |f_i| <= tol`` (metres).
+    threshold : float, optional
+        The contact threshold (metres): a correction that moves a vertex of G by more than
+        ``apo.correction.DISPLACEMENT_FACTOR`` thresholds fails.
 
     Returns
     -------
@@ -697,29 +575,19 @@ def correct_poses(
     before, after : ndarray, shape (n,)
         ``max_i |f_i|`` at the observed and the corrected poses, metres.
     converged : ndarray of bool, shape (n,)
+        Converged and not flagged as implausible.
     """
+    from apo.correction import ContactConstraints
+
     X = np.array(X_EG_seq, dtype=np.float64)
     n = X.shape[0]
-    r, J = _residuals_batch(grasped, environment, X, elements)
-    if r.shape[1] == 0:
+    if not elements:
         z = np.zeros(n)
         return X, z, z.copy(), np.ones(n, dtype=bool)
-    before = np.abs(r).max(axis=1)
-    after = before.copy()
-    active = np.ones(n, dtype=bool)
-    for _ in range(max_iter):
-        active &= after > tol
-        if not active.any():
-            break
-        idx = np.flatnonzero(active)
-        with np.errstate(all="ignore"):
-            xi = -np.einsum("nij,nj->ni", np.linalg.pinv(J[idx], rcond=1e-9), r[idx])
-        xi = np.where(np.isfinite(xi), xi, 0.0)
-        X[idx] = _poses_from_twists(xi) @ X[idx]
-        r_i, J_i = _residuals_batch(grasped, environment, X[idx], elements)
-        r[idx], J[idx] = r_i, J_i
-        after[idx] = np.abs(r_i).max(axis=1)
-    return X, before, after, after <= tol
+    res = ContactConstraints(grasped, environment, elements).correct(
+        X, max_iter=max_iter, tol=tol, threshold=threshold
+    )
+    return res.X_EG, res.residual_before, res.residual_after, res.converged & ~res.flagged
 
 
 def _correct_batch(
@@ -728,6 +596,7 @@ def _correct_batch(
     X: FloatArray,
     states: Sequence[ContactState],
     labels: IntArray,
+    threshold: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
     """Correct every pose ``X[t]`` under ``states[labels[t]]``, batched by state."""
     n = X.shape[0]
@@ -740,16 +609,20 @@ def _correct_batch(
         elements = states[int(k)].elements
         if not elements:
             continue
-        Xk, b, a, c = correct_poses(grasped, environment, X[frames], elements)
+        Xk, b, a, c = correct_poses(grasped, environment, X[frames], elements, threshold=threshold)
         Xc[frames], before[frames], after[frames], conv[frames] = Xk, b, a, c
     return Xc, before, after, conv
 
 
 def _correct_one(
-    grasped: Polyhedron, environment: Polyhedron, X: FloatArray, state: ContactState
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X: FloatArray,
+    state: ContactState,
+    threshold: float,
 ) -> tuple[FloatArray, float, float, bool]:
     """Correct one pose under ``state``; return X, residual before, after, converged."""
-    Xc, b, a, c = correct_poses(grasped, environment, X[None], state.elements)
+    Xc, b, a, c = correct_poses(grasped, environment, X[None], state.elements, threshold=threshold)
     return Xc[0], float(b[0]), float(a[0]), bool(c[0])
 
 
@@ -899,7 +772,7 @@ def _bridge_candidates(
         )
         best: tuple[float, FloatArray, int] | None = None
         for f in (b1, a2):
-            Xc, before, _after, ok = _correct_one(grasped, environment, X[f], union)
+            Xc, before, _after, ok = _correct_one(grasped, environment, X[f], union, reach / 3.0)
             moved = _max_displacement(grasped, X[f], Xc)
             # Near the observation (residual within reach), and the correction did not
             # wander off to a distant solution of the same equations.
@@ -1257,7 +1130,9 @@ def recognize_frames(
     # before and after, converged flags.
     t5 = time.perf_counter()
     chosen_states = [c.state if c is not None else first_state[k] for k, c in enumerate(candidates)]
-    Xc, res_before, res_after, conv = _correct_batch(grasped, environment, X, chosen_states, path)
+    Xc, res_before, res_after, conv = _correct_batch(
+        grasped, environment, X, chosen_states, path, theta
+    )
     tm["correction"] = time.perf_counter() - t5
 
     # 6. States, transitions, rejected runs.
@@ -1433,7 +1308,9 @@ def _analyse_candidate(
     """Correct the best observed frames of candidate ``k``; analyse it at the first success."""
     frames = np.flatnonzero(obs == k)
     best = frames[np.argsort(cost[frames], kind="stable")[:tries]]
-    Xb, _before, _after, ok = correct_poses(grasped, environment, X[best], observed.elements)
+    Xb, _before, _after, ok = correct_poses(
+        grasped, environment, X[best], observed.elements, threshold=float(finder.threshold)
+    )
     if ok.any():
         i = int(np.argmax(ok))
         f = int(best[i])
