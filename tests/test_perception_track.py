@@ -198,15 +198,21 @@ def test_recognition_from_rendered_frames_matches_true_poses(
     assert np.median(rot) < 0.15 and rot.max() < 0.5
 
 
+# Seed 7: the peg turns 27 deg upright within one frame (E -> F); a pose 1.5 deg off scored
+# confidence 0.993 there until the tracker also required an RMS residual like the last frames'.
 @pytest.mark.slow
-def test_recognition_from_rendered_frames_full_demo_with_hand(tmp_path: Path) -> None:
+@pytest.mark.parametrize("seed", [3, 7])
+def test_recognition_from_rendered_frames_full_demo_with_hand(tmp_path: Path, seed: int) -> None:
     """The whole built-in example (60 frames) at 640x480, with a hand occluding the peg."""
     truth, observed, pos, rot = recognise_rendered_builtin(
-        tmp_path, width=640, height=480, n_frames=60, hand=True, seed=3
+        tmp_path, width=640, height=480, n_frames=60, hand=True, seed=seed
     )
     assert observed.subskill_sequence() == truth.subskill_sequence()
     assert [t.critical for t in observed.transitions] == [t.critical for t in truth.transitions]
-    assert np.median(pos) < 0.25 and pos.max() < 1.0
+    # While the peg pivots over the rim (state D) the wrist hides the crossbar's top face,
+    # the only face in view that fixes the position along the stem: it rests on edges and
+    # silhouettes there, 0.7 to 1.0 mm off over seeds 0-8 (0.98 mm at seed 3), 0.06 elsewhere.
+    assert np.median(pos) < 0.25 and pos.max() < 1.5
     assert np.median(rot) < 0.15 and rot.max() < 0.5
 
 
