@@ -31,7 +31,7 @@ import enum
 import importlib
 import itertools
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, cast
 
 import numpy as np
@@ -889,7 +889,7 @@ def recognize(
     models: tuple[ModelRef, ModelRef] | None = None,
     source: str = "",
     costs: SegmentationCosts | None = None,
-    memoize: bool = True,
+    memoize: bool = False,
 ) -> TaskModel:
     """Recognise a demonstration into a :class:`~apo.task.TaskModel`.
 
@@ -915,7 +915,8 @@ def recognize(
         Weights of the segmentation (``docs/recognition.md``).
     memoize : bool
         Run the contact finder once per set of near feature pairs (:func:`near_signatures`)
-        instead of at every frame.
+        instead of at every frame. Off by default: the finder's batched search over all
+        frames (:meth:`apo.contact.ContactFinder.find_batch`) is now the faster of the two.
 
     Returns
     -------
@@ -957,7 +958,7 @@ def recognize_frames(
     models: tuple[ModelRef, ModelRef] | None = None,
     source: str = "",
     costs: SegmentationCosts | None = None,
-    memoize: bool = True,
+    memoize: bool = False,
 ) -> Recognition:
     """Recognise a demonstration; return the task model and per-frame diagnostics.
 
@@ -990,12 +991,9 @@ def recognize_frames(
     observed_states: list[ContactState] = []
     if memoize:
         labels = near_signatures(grasped, environment, X, theta, progress=progress)
-        by_label: dict[int, ContactState] = {}
-        for i in range(n):
-            st = by_label.get(int(labels[i]))
-            if st is None:
-                st = by_label[int(labels[i])] = finder.find(X[i])
-            observed_states.append(st)
+        _uniq, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+        found = finder.find_batch(X[first])  # one batched search over the labels
+        observed_states = [found[int(j)] for j in inverse.ravel()]
     else:
         for a in range(0, n, _CHUNK):
             observed_states.extend(finder.find_batch(X[a : a + _CHUNK]))
@@ -1172,17 +1170,23 @@ def recognize_frames(
             )
         )
         first_id.setdefault(k, sid)
-    transitions_out = [
-        _transition_record(
-            analysed_at(candidates, run_cands[i]),
-            analysed_at(candidates, run_cands[i + 1]),
-            ids[i],
-            ids[i + 1],
-            runs[i + 1][0],
-            bool(feasible[run_cands[i], run_cands[i + 1]]),
+    # A pair of candidates is analysed once however often the demonstration repeats it.
+    analysed: dict[tuple[int, int], Transition] = {}
+    transitions_out = []
+    for i in range(len(runs) - 1):
+        pair = (run_cands[i], run_cands[i + 1])
+        if pair not in analysed:
+            analysed[pair] = _transition_record(
+                analysed_at(candidates, pair[0]),
+                analysed_at(candidates, pair[1]),
+                ids[i],
+                ids[i + 1],
+                runs[i + 1][0],
+                bool(feasible[pair]),
+            )
+        transitions_out.append(
+            replace(analysed[pair], from_id=ids[i], to_id=ids[i + 1], frame=runs[i + 1][0])
         )
-        for i in range(len(runs) - 1)
-    ]
     rejected = _rejected_runs(obs_c, path, runs, ids, keys, candidates, feasible, emission, w)
     tm["task"] = time.perf_counter() - t4
 
