@@ -537,26 +537,9 @@ def test_face_on_vertex_normal_is_minus_the_grasped_face_normal() -> None:
 
 
 SCENES_FOR_BAND = {name: scene for name, scene, *_ in CANONICAL if name != "none"}
-FV_NOT_SNAPPED = (
-    "apo.contact: an FV element (G's face on E's vertex) keeps minus G's face normal moved "
-    "with the pose, -R n_G, even when one of E's face normals at the vertex lies within the "
-    "merge angle: the G-half-space case (the half_g branch of ContactFinder._cone_pairs and "
-    "the scalar _cone_pair_rays) returns it without _snap_rays, while VF/EE/VE elements are "
-    "snapped to E's exact normals. In a face-face "
-    "contact seen with a 1e-4 rad tilt the FV normal then differs from the VF ones by 1e-4 "
-    "rad > tol.rank and the block-on-table numbers (2,1,0,1,2,0,1,2) become (1,2,0,...)"
-)
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=FV_NOT_SNAPPED))
-        if n == "face_over_corner"
-        else n
-        for n in sorted(SCENES_FOR_BAND)
-    ],
-)
+@pytest.mark.parametrize("name", sorted(SCENES_FOR_BAND))
 @pytest.mark.parametrize("frac", [-0.9, -0.5, 0.5, 0.9])
 def test_within_the_threshold_apart_or_into_gives_the_same_state(name: str, frac: float) -> None:
     # The same physical contact moved by 0.9 threshold along the mean separating normal
@@ -655,7 +638,6 @@ def test_face_face_contact_decomposes_at_the_corners_of_the_region() -> None:
     np.testing.assert_allclose(got["EE"], sorted(p.tolist() for p in expected["EE"]), atol=1e-12)
 
 
-@pytest.mark.xfail(strict=True, reason=FV_NOT_SNAPPED)
 def test_fv_normal_in_a_face_face_contact_is_the_environment_face_normal() -> None:
     # Face over the block's corner, the cube turned by 1e-4 rad about x (well inside the
     # merge angle of 3 * angle_tol = 0.012 rad): every element should keep the normal +z,
@@ -665,6 +647,28 @@ def test_fv_normal_in_a_face_face_contact_is_the_environment_face_normal() -> No
     assert kinds(state) == Counter({"VF": 1, "FV": 1, "EE": 2})
     for e in state.elements:
         np.testing.assert_allclose(e.normals, [[0, 0, 1]], atol=1e-12, err_msg=e.kind.value)
+
+
+@pytest.mark.parametrize("tilt", [-1e-4, -0.011, -0.013, -0.1])
+def test_fv_normal_snaps_within_the_merge_angle_only_and_alike_in_every_search(
+    tilt: float,
+) -> None:
+    # Face over the block's corner, the cube turned by ``tilt`` about the x axis through that
+    # corner (E's vertex stays on G's face): the FV normal -R n_G = (0, -sin, cos) becomes
+    # E's top normal +z while within the merge angle 3 * angle_tol = 0.012 rad, and stays
+    # -R n_G beyond it; the batched, single-frame and all-pairs searches agree.
+    G, E, X = scene_face_over_corner()
+    finder = ContactFinder(G, E)
+    c = np.array([0.05, 0.05, 0.0])
+    P = pose(t=c) @ pose_from_twist(np.r_[tilt, 0, 0, 0, 0, 0]) @ pose(t=-c) @ X
+    state = finder.find(P)
+    (fv,) = [e for e in state.elements if e.kind is ContactKind.FV]
+    assert fv.environment == ("v", E.vertices.tolist().index([0.05, 0.05, 0.0]))
+    inside = abs(tilt) < 3 * finder.angle_tol
+    expected = [0.0, 0.0, 1.0] if inside else [0.0, -np.sin(tilt), np.cos(tilt)]
+    np.testing.assert_allclose(fv.normals, [expected], atol=1e-12)
+    _assert_same_states(finder.find_batch(P[None]), [state])
+    _assert_same_states([finder.find_naive(P)], [state])
 
 
 # --------------------------------------------------------------------------------------------

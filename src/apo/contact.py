@@ -1149,10 +1149,10 @@ def _cone_pair_rays(
         n = ce.normals[0]
         ok = bool(np.all(rays_g @ n >= -sin_tol)) and bool(np.all(np.abs(lin_g @ n) <= sin_tol))
         return n[None, :].copy() if ok else np.zeros((0, 3))
-    if len(lin_g) == 2:  # G's piece is a half-space: minus its outward normal
+    if len(lin_g) == 2:  # G's piece is a half-space: minus its outward normal, snapped
         c = -(R @ cg.normals[0])
         ok = bool(np.all(ce.rays @ c <= sin_tol)) and bool(np.all(np.abs(ce.lin @ c) <= sin_tol))
-        return c[None, :] if ok else np.zeros((0, 3))
+        return _snap_rays(c[None, :], cg, ce, R, merge_angle) if ok else np.zeros((0, 3))
     lin = np.concatenate([lin_g, ce.lin])
     ineq = np.concatenate([rays_g, -ce.rays])
     rays = _separating_rays(lin, ineq, len(cg.rays), sin_tol, merge_angle)
@@ -1436,7 +1436,7 @@ class ContactFinder:
             scalar = np.ones(n, dtype=bool)
         else:
             half_e = le == 2  # E's piece is a half-space: its outward normal (exact in E)
-            half_g = ~half_e & (lg == 2)  # G's piece is one: minus its outward normal
+            half_g = ~half_e & (lg == 2)  # G's piece is one: minus its outward normal, snapped
             arc = (lg + le) == 1
             edges = (lg == 1) & (le == 1)
             pointed = (lg == 0) & (le == 0)
@@ -1458,8 +1458,13 @@ class ContactFinder:
                 j, idx, _ = _expand(P.lin_ptr[pk], P.nlin[pk])
                 v = _rotate(R[k][j], P.lin[idx]) if rot else P.lin[idx]
                 bad[j[np.abs(_dot(v, nrm[j])) > sin_tol]] = True
-                count[k[~bad]] = 1
-                rays[k[~bad], 0] = nrm[~bad]
+                k, nrm = k[~bad], nrm[~bad]
+                count[k] = 1
+                rays[k, 0] = nrm
+                if side == "g" and len(k):  # to E's exact normal within the merge angle
+                    count[k], rays[k] = _snap_batch(
+                        PG, PE, pg[k], pe[k], R[k], rays[k], count[k], merge
+                    )
             k = np.flatnonzero(arc)
             if len(k):
                 count[k], rays[k] = _arc_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge)
