@@ -594,27 +594,84 @@ def test_every_index_matches_the_definitions(contacts: list[ContactPoint]) -> No
     assert r.restraining == Restraining(_rank(f), _rank(w) - _rank(f), _rank(w))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="apo.dof.check_arrays: a finite normal whose length overflows (components ~1e308) "
-    "makes np.linalg.norm return inf: a RuntimeWarning, then the generic 'contacts are "
-    "malformed' InputFormatError naming no contact; normals only matter by direction",
-)
 def test_huge_finite_normal_is_only_a_direction() -> None:
     huge = analyze([cp((0, 0, 0), (1e308, 1e308, 0)), cp((1, 0, 0), Z)])
     assert _numbers(huge) == _numbers(analyze([cp((0, 0, 0), (1, 1, 0)), cp((1, 0, 0), Z)]))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="apo.dof._analyze_checked: the RMS length of the points overflows to inf for "
-    "coordinates beyond ~1e154, so every moment becomes 0 and two points on a line give the "
-    "one-point answer (rotation M = 3 instead of 2) with only a RuntimeWarning",
-)
 def test_huge_coordinates_scale_away() -> None:
     s = 1e200
     big = analyze([cp((0, 0, 0), Z), cp((s, 0, 0), Z)])
     assert big.fig25 == (2, 1, 0, 2, 1, 0, 1, 1)  # box on an edge, as CASES
+
+
+def _twists_scale(got: DofResult, ref: DofResult, s: float, *, exact: bool) -> None:
+    """Maintaining twists of ``got`` are those of ``ref`` with the moments S1 of the
+    rotation rows times ``s`` (the first m_t rows, pure translations, unchanged)."""
+    m_t = ref.translation.maintaining
+    tw, tw_ref = got.geometry.maintaining_twists, ref.geometry.maintaining_twists
+    expected = tw_ref.copy()
+    expected[m_t:, 3:] *= s
+    if exact:
+        assert np.array_equal(tw, expected)
+    else:
+        np.testing.assert_allclose(tw[:, :3], expected[:, :3], atol=1e-12)
+        np.testing.assert_allclose(tw[m_t:, 3:] / s, tw_ref[m_t:, 3:], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(tw[:m_t, 3:], tw_ref[:m_t, 3:], atol=1e-12)
+
+
+@pytest.mark.parametrize("s", [1e-200, 1e-5, 1e200, 1e300])
+def test_scaled_coordinates_give_the_same_answer_and_scaled_twists(s: float) -> None:
+    # The box on an edge of test_maintaining_twist_in_input_frame with every coordinate
+    # times s: the same numbers and subspaces; the moment parts S1 (metres per rad) of the
+    # rotational maintaining twists scale by s.
+    pts = [(0, 5, 2), (3, 5, 2)]
+    ref = analyze([cp(p, Z) for p in pts])
+    got = analyze([cp(tuple(s * c for c in p), Z) for p in pts])
+    assert _numbers(got) == _numbers(ref)
+    _twists_scale(got, ref, s, exact=False)
+
+
+def test_power_of_two_scaling_of_coordinates_and_normals_is_exact() -> None:
+    # Points and normals are rescaled by powers of two only, so scaling the input by one
+    # changes no bit of the unit normals and subspaces, and scales S1 exactly.
+    contacts = [cp((0.3, 5.1, 2.7), (0.1, 0.2, 3.0)), cp((3.3, 4.9, 2.2), (0.3, -0.1, 1.7))]
+    ref = analyze(contacts)
+    k = 2.0**700
+    got = analyze([cp(tuple(k * p for p in c.point), *(k * c.normals)) for c in contacts])
+    assert _numbers(got) == _numbers(ref)
+    _twists_scale(got, ref, k, exact=True)
+    for name in ("rotation_maintaining", "rotation_detaching", "translation_detaching_direction"):
+        assert np.array_equal(getattr(got.geometry, name), getattr(ref.geometry, name)), name
+    _, ns = check_contacts(contacts)
+    _, ns_k = check_contacts([cp(c.point, *(k * c.normals)) for c in contacts])
+    for a, b in zip(ns, ns_k, strict=True):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    ("normal", "zero"),
+    [
+        ((1e-13, 0, 0), True),
+        ((0, 5e-13, 5e-13), True),
+        ((1e-11, 0, 0), False),
+        ((1e-300, 0, 0), True),
+    ],
+)
+def test_tiny_normals_are_zero_below_1e_12_only(normal: tuple[float, ...], zero: bool) -> None:
+    # A normal is zero when its length is at most 1e-12, however it is scaled internally.
+    contacts = [cp((0, 0, 0), Z), cp((1, 0, 0), normal)]
+    if zero:
+        with pytest.raises(InputFormatError, match="contact 1: normal 0 is zero"):
+            check_contacts(contacts)
+    else:
+        np.testing.assert_allclose(check_contacts(contacts)[1][1], [[1, 0, 0]])
+
+
+def test_a_bad_contact_after_a_huge_normal_is_named() -> None:
+    # The culprit search does not overflow on the huge, valid normal of contact 0.
+    with pytest.raises(InputFormatError, match="contact 1: normal 0 is zero"):
+        check_contacts([cp((0, 0, 0), (1e308, -1e308, 1e308)), cp((1, 0, 0), (0, 0, 0))])
 
 
 @pytest.mark.parametrize("name", list(CASES))

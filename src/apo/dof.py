@@ -243,16 +243,16 @@ def check_arrays(
         ok = pts.shape == (n, 3) and all(a.ndim == 2 and a.shape[1] == 3 for a in arrs)
         if ok:
             alln = np.concatenate(arrs)
-            lengths = np.sqrt(np.einsum("ij,ij->i", alln, alln))
             ok = (
                 alln.shape[0] >= n
                 and all(a.shape[0] >= 1 for a in arrs)
                 and bool(np.isfinite(pts).all())
-                and bool(np.isfinite(lengths).all())
-                and bool((lengths > 1e-12).all())
+                and bool(np.isfinite(alln).all())
             )
         if ok:
-            unit = alln / lengths[:, None]
+            unit, nonzero = _directions(alln)
+            ok = bool(nonzero.all())
+        if ok:
             splits = np.cumsum([a.shape[0] for a in arrs])[:-1]
             return pts, list(np.split(unit, splits))
     except (TypeError, ValueError):
@@ -260,6 +260,25 @@ def check_arrays(
     for i, (p, ns) in enumerate(zip(points, normals_list, strict=True)):
         _check_one(i, p, ns)
     raise InputFormatError("contacts are malformed")  # pragma: no cover - _check_one raises
+
+
+def _directions(normals: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """Return the unit directions of finite normals (rows, shape (M, 3)) and which are non-zero.
+
+    A normal only matters by its direction: each row is first scaled by the power of two
+    ``2**-e`` that brings its largest absolute component into [0.5, 1), which is exact, so
+    no finite length overflows (components up to 1e308) and the directions are those of
+    ``normals / |normals|`` bit for bit wherever that does not overflow. A row is zero when
+    its length is at most 1e-12 (its direction is then not meaningful).
+    """
+    _, e = np.frexp(np.abs(normals).max(axis=1))  # e = 0 for a zero row
+    scaled = np.ldexp(normals, -e[:, None])
+    length = np.sqrt(np.einsum("ij,ij->i", scaled, scaled))  # in [0.5, sqrt(3)), or 0
+    # The true length is length * 2**e; where e > 0 it is at least 1, so only e <= 0 needs
+    # the (exact, never overflowing) rescaling for the comparison.
+    nonzero = np.ldexp(length, np.minimum(e, 0)) > 1e-12
+    unit = scaled / np.where(nonzero, length, 1.0)[:, None]
+    return unit, nonzero
 
 
 def _check_one(i: int, p: Any, ns: Any) -> None:
@@ -281,7 +300,7 @@ def _check_one(i: int, p: Any, ns: Any) -> None:
         )
     if not np.all(np.isfinite(na)):
         raise InputFormatError(f"contact {i}: normals are not finite: {na.tolist()}")
-    bad = np.flatnonzero(np.linalg.norm(na, axis=1) <= 1e-12)
+    bad = np.flatnonzero(~_directions(na)[1])
     if bad.size:
         raise InputFormatError(f"contact {i}: normal {int(bad[0])} is zero: {na[bad[0]].tolist()}")
 
@@ -585,9 +604,13 @@ def _analyze_regular(
     normals: FloatArray,
     centre: FloatArray,
     length: float,
+    exponent: int,
     tolerances: Tolerances,
 ) -> _Regular:
-    """Analysis of a non-singular state (one unit normal per point); paper section 2.2.1."""
+    """Analysis of a non-singular state (one unit normal per point); paper section 2.2.1.
+
+    ``points``, ``centre`` and ``length`` are in units of ``2**exponent`` metres.
+    """
     f, w = _normalised_columns(points, normals, centre, length)
     eye3 = np.eye(3)
 
@@ -659,7 +682,7 @@ def _analyze_regular(
     r_det = _orth_complement(span_vr, r_maint, d_r)
     r_det1 = _orth_complement(lin_vr, r_maint, d_r1)
     r_det2 = _orth_complement(span_vr, lin_vr, d_r2)
-    twists = _maintaining_twists(null_wt, t_maint, r_maint, centre, length)
+    twists = _maintaining_twists(null_wt, t_maint, r_maint, centre, length, exponent)
 
     geometry = DofGeometry(
         translation_maintaining=t_maint,
@@ -719,8 +742,13 @@ def _maintaining_twists(
     r_maint: FloatArray,
     centre: FloatArray,
     length: float,
+    exponent: int,
 ) -> FloatArray:
-    """Canonical maintaining-twist basis in the input frame (see :class:`DofGeometry`)."""
+    """Canonical maintaining-twist basis in the input frame (see :class:`DofGeometry`).
+
+    ``centre`` and ``length`` are in units of ``2**exponent`` metres; so is ``S1`` until
+    it is scaled back at the end (exact, as every step commutes with the power of two).
+    """
     m_t, m_r = t_maint.shape[0], r_maint.shape[0]
     rows = np.zeros((m_t + m_r, 6))
     rows[:m_t, 3:] = t_maint
@@ -732,7 +760,8 @@ def _maintaining_twists(
         if m_t:
             s1 = s1 - (s1 @ t_maint.T) @ t_maint
         rows[m_t:, :3] = r_maint
-        rows[m_t:, 3:] = s1
+        with np.errstate(over="ignore"):  # inf only for coordinates near the float limit
+            rows[m_t:, 3:] = np.ldexp(s1, exponent)
     return rows
 
 
@@ -801,7 +830,9 @@ def analyze(contacts: Sequence[ContactPoint], *, tolerances: Tolerances = tol) -
 
     Points are shifted to their centroid and divided by their RMS distance from it before
     the ranks (a change of frame maps ``V_a`` linearly and keeps the S0 parts), so results
-    do not change under a rigid motion, uniform scaling or reordering of the contacts.
+    do not change under a rigid motion, uniform scaling or reordering of the contacts. Points
+    and normals are first scaled by powers of two (exact), so any finite coordinates and
+    normal components (up to 1e308) are analysed without overflow.
 
     Examples
     --------
@@ -819,6 +850,12 @@ def _analyze_checked(
     pts: FloatArray, normals: list[FloatArray], tolerances: Tolerances
 ) -> DofResult:
     n = pts.shape[0]
+    # Points in units of 2**e (an exact scaling), e the exponent of the largest absolute
+    # coordinate, so that the centroid and the RMS length neither overflow nor underflow for
+    # any finite coordinates; the moment columns are unchanged (bit for bit where the
+    # unscaled sums would not overflow) and the twists are scaled back by 2**e.
+    e = int(np.frexp(np.abs(pts).max(initial=0.0))[1])
+    pts = np.ldexp(pts, -e)
     if n:
         centre = pts.mean(axis=0)
         length = math.sqrt(float(np.mean(np.sum((pts - centre) ** 2, axis=1))))
@@ -834,6 +871,7 @@ def _analyze_checked(
         np.array([normals[i][0] for i in regular_idx]).reshape(-1, 3),
         centre,
         length,
+        e,
         tolerances,
     )
     # restraining DOF: every normal of every point (section 3.5)
