@@ -203,3 +203,24 @@ def test_plot_writes_a_png(tmp_path):
     out = plot_dof(make_task(), tmp_path / "dof.png", times=np.linspace(0, 0.9, 10))
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert out.stat().st_size > 5000
+
+
+def test_table_lists_the_longest_rejected_runs_and_counts_the_rest():
+    from dataclasses import replace
+
+    from apo.report import render_table
+    from apo.report.table import MAX_REJECTED_LINES
+
+    runs = tuple(
+        Rejected((10 * i, 10 * i + (5 if i == 7 else 0)), ("VF v0-f1",), ("A",), "noise")
+        for i in range(MAX_REJECTED_LINES + 3)
+    )
+    text = render_table(replace(make_task(), rejected=runs))
+    listed = [ln for ln in text.splitlines() if ln.startswith("  frames ")]
+    assert len(listed) == MAX_REJECTED_LINES
+    assert "  frames 70-75 -> A: noise" in listed  # the long run is kept
+    assert [int(ln.split()[1].split("-")[0]) for ln in listed] == sorted(
+        int(ln.split()[1].split("-")[0]) for ln in listed
+    )
+    assert "... and 3 shorter run(s)" in text
+    assert f"repair: {MAX_REJECTED_LINES + 3} observed run(s) rejected" in text

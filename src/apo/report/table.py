@@ -22,6 +22,10 @@ def subskill_label(s: SubSkill) -> str:
     return f"{label}({s.type})" if s.type else label
 
 
+MAX_REJECTED_LINES = 12
+"""Rejected runs listed in the table at most (all are in ``task.json``)."""
+
+
 def render_table(task: TaskModel, *, units: str | None = None) -> str:
     """Return the Fig. 25-style table of ``task`` as text (no trailing newline).
 
@@ -71,7 +75,15 @@ def render_table(task: TaskModel, *, units: str | None = None) -> str:
     lines.append("* singular state: the numbers are singular M D C;  rT rR: restraining DOF")
     if task.rejected:
         lines.append(f"repair: {len(task.rejected)} observed run(s) rejected")
-        for rj in task.rejected:
+        # the longest runs first (a long run replaced tells more than a 1-frame blip)
+        shown = sorted(task.rejected, key=lambda r: r.frames[0] - r.frames[1])
+        shown = sorted(shown[:MAX_REJECTED_LINES], key=lambda r: r.frames[0])
+        for rj in shown:
             span = f"{rj.frames[0]}-{rj.frames[1]}"
             lines.append(f"  frames {span} -> {','.join(rj.replaced_by)}: {rj.reason}")
+        if len(task.rejected) > len(shown):
+            lines.append(
+                f'  ... and {len(task.rejected) - len(shown)} shorter run(s): see "rejected" '
+                "in task.json"
+            )
     return "\n".join(lines)
