@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,8 +61,24 @@ def test_step_declared_unit_is_honoured(real_data_dir: Path, tmp_path: Path) -> 
     in_m = tmp_path / "peg_in_m.STEP"
     in_m.write_text(text, encoding="latin-1")
     assert step_length_unit(in_m) == "m"
-    peg = load_polyhedron(in_m)
+    # an 88 m peg is read as declared, with a warning that the units look wrong
+    with pytest.warns(UserWarning, match=r"the model is 88 m across .*are the units right"):
+        peg = load_polyhedron(in_m)
     assert np.allclose(np.ptp(peg.vertices, axis=0), [70.0, 88.0, 35.0], atol=1e-4)
+
+
+def test_implausible_sizes_warn_that_the_units_may_be_wrong(tmp_path: Path) -> None:
+    import trimesh
+
+    path = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=[50.0, 50.0, 50.0]).export(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_polyhedron(path, units="mm")  # 50 mm: plausible, silent
+    with pytest.warns(
+        UserWarning, match=r"cube.stl: the model is 50 m across \(read with units='m'\)"
+    ):
+        load_polyhedron(path, units="m")
 
 
 @pytest.mark.realdata

@@ -11,12 +11,30 @@ import argparse
 import importlib
 import os
 import sys
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 from apo.errors import ApoError
 
 # Command modules, in the order `apo --help` lists them.
 COMMANDS = ("dof", "contacts", "analyze", "demo", "track")
+
+
+@contextmanager
+def warnings_to_stderr(prefix: str) -> Iterator[None]:
+    """Print the warnings raised inside the block as ``<prefix>: warning: <message>``.
+
+    A user of the command line sees one line per warning (a mesh flipped inside-out, a
+    model of implausible size), not Python's warning format with a source line.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield
+        finally:
+            for w in caught:
+                print(f"{prefix}: warning: {w.message}", file=sys.stderr)
 
 
 def build_parser() -> argparse.ArgumentParser:

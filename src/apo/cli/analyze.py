@@ -264,6 +264,7 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
 def _load_models(
     demo_path: Path, grasped: str | None, environment: str | None, units: str | None, dem: Any
 ) -> tuple[Polyhedron, Polyhedron, Path, Path]:
+    from apo.cli import warnings_to_stderr
     from apo.io.meshes import load_polyhedron
 
     paths: list[Path] = []
@@ -279,8 +280,9 @@ def _load_models(
             raise InputFormatError(f"{demo_path}: {flag[2:]} model file not found: {p}")
         paths.append(p)
     mu = units or getattr(dem, "model_units", None) or getattr(dem, "units", None) or "mm"
-    G = load_polyhedron(paths[0], units=mu)
-    E = load_polyhedron(paths[1], units=mu)
+    with warnings_to_stderr("apo analyze"):
+        G = load_polyhedron(paths[0], units=mu)
+        E = load_polyhedron(paths[1], units=mu)
     return G, E, paths[0], paths[1]
 
 

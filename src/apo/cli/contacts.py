@@ -10,12 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
-import warnings
 from typing import Any
 
 import numpy as np
 
+from apo.cli import warnings_to_stderr
 from apo.errors import InputFormatError
 
 # Same as apo.io.meshes.UNITS; repeated so that registering the command stays cheap.
@@ -121,14 +120,9 @@ def run(args: argparse.Namespace) -> int:
             raise InputFormatError(f"--threshold: not a number: {args.threshold!r}") from exc
         if not (math.isfinite(threshold) and threshold > 0):
             raise InputFormatError(f"--threshold: must be positive, got {args.threshold!r}")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            grasped = load_polyhedron(args.grasped, units=args.units)
-            environment = load_polyhedron(args.environment, units=args.units)
-        finally:
-            for w in caught:
-                print(f"apo contacts: warning: {w.message}", file=sys.stderr)
+    with warnings_to_stderr("apo contacts"):
+        grasped = load_polyhedron(args.grasped, units=args.units)
+        environment = load_polyhedron(args.environment, units=args.units)
     if threshold is None:
         threshold = default_threshold(grasped, environment)
     state = find_contacts(grasped, environment, X_EG, threshold=threshold)

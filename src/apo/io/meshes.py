@@ -165,6 +165,11 @@ def load_triangles(
     return vertices, triangles
 
 
+PLAUSIBLE_SIZE = (1e-3, 10.0)
+"""Largest extent (metres) of a model outside which :func:`load_polyhedron` warns that the
+units may be wrong (a part read in metres from a millimetre file is 1000 times too big)."""
+
+
 def load_polyhedron(
     path: str | Path, *, units: str | None = None, name: str | None = None
 ) -> Polyhedron:
@@ -198,7 +203,9 @@ def load_polyhedron(
     UserWarning
         Where the analysis can proceed safely: an inside-out mesh was flipped, triangles
         collapsed by merging vertices or zero-area triangles were dropped (the message
-        starts with the file path), or a STEP file's own unit overrides ``units``.
+        starts with the file path), a STEP file's own unit overrides ``units``, or the model
+        is implausibly large or small for an assembly part (:data:`PLAUSIBLE_SIZE`): the
+        units are probably wrong.
 
     Examples
     --------
@@ -219,6 +226,18 @@ def load_polyhedron(
             messages = [(w.category, _strip_label(str(w.message), label)) for w in caught]
     for category, message in messages:
         warnings.warn(f"{path}: {message}", category, stacklevel=2)
+    size = float(np.ptp(poly.vertices, axis=0).max())
+    if not PLAUSIBLE_SIZE[0] <= size <= PLAUSIBLE_SIZE[1]:
+        read_as = (
+            "its own STEP unit"
+            if MESH_SUFFIXES[path.suffix.lower()] == "step"
+            else (f"units={units or DEFAULT_MESH_UNITS!r}")
+        )
+        warnings.warn(
+            f"{path}: the model is {size:.4g} m across (read with {read_as}): are the units right?",
+            UserWarning,
+            stacklevel=2,
+        )
     return poly
 
 
