@@ -126,12 +126,12 @@ class PlotWorker:
                 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
                 from matplotlib.figure import Figure  # noqa: F401
 
+                from apo.report.plot import plot_dof  # and apo.task, for unpickling
+
                 with os.fdopen(r, "rb") as fh:
                     data = fh.read()
                 code = 0
                 if data:
-                    from apo.report.plot import plot_dof
-
                     task, times, path, title = pickle.loads(data)
                     with atomic_path(Path(path)) as tmp:
                         plot_dof(task, tmp, times=times, title=title)
