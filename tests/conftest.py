@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# Tests never write to the user's cache: the model cache (apo.io.meshes) goes to a folder of
+# this test session (each xdist worker its own).
+os.environ["APO_CACHE_DIR"] = tempfile.mkdtemp(prefix="apo-test-cache-")
 
 
 def shared_data_dir() -> Path | None:

@@ -288,3 +288,62 @@ def test_step_and_mesh_formats_agree(
         return sorted(ends.reshape(-1, 6).tolist())
 
     assert concave(mesh) == concave(step)
+
+
+# ---- the triangle cache ---------------------------------------------------------------------
+
+
+def test_cache_returns_the_same_triangles_without_reading_the_file_again(tmp_path, monkeypatch):
+    import trimesh
+
+    from apo.io.meshes import load_triangles
+
+    monkeypatch.setenv("APO_CACHE_DIR", str(tmp_path / "cache"))
+    path = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=[50.0, 40.0, 30.0]).export(path)
+    v1, t1 = load_triangles(path, units="mm")
+    assert len(list((tmp_path / "cache" / "meshes").glob("*.npz"))) == 1
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("trimesh.load called on a cached file")
+
+    monkeypatch.setattr(trimesh, "load", refuse)
+    v2, t2 = load_triangles(path, units="mm")
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(t1, t2)
+    # other units or other bytes are other entries (and need the reader again)
+    with pytest.raises(InputFormatError, match="cannot read"):
+        load_triangles(path, units="cm")
+    monkeypatch.undo()
+    monkeypatch.setenv("APO_CACHE_DIR", str(tmp_path / "cache"))
+    v3, _ = load_triangles(path, units="cm")
+    np.testing.assert_allclose(v3, v1 * 10)
+    trimesh.creation.box(extents=[60.0, 40.0, 30.0]).export(path)
+    v4, _ = load_triangles(path, units="mm")
+    assert np.ptp(v4[:, 0]) == pytest.approx(0.06)
+
+
+def test_cache_off_or_unwritable_still_reads(tmp_path, monkeypatch):
+    import trimesh
+
+    from apo.io.meshes import cache_dir, load_triangles
+
+    path = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=[50.0, 40.0, 30.0]).export(path)
+    monkeypatch.setenv("APO_CACHE", "0")
+    assert cache_dir() is None
+    v, _ = load_triangles(path)
+    assert np.ptp(v[:, 0]) == pytest.approx(0.05)
+    monkeypatch.setenv("APO_CACHE", "1")
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("x")
+    monkeypatch.setenv("APO_CACHE_DIR", str(blocker))
+    v, _ = load_triangles(path)  # the cache cannot be made: read, no error
+    assert np.ptp(v[:, 0]) == pytest.approx(0.05)
+    # a corrupt entry is read past
+    monkeypatch.setenv("APO_CACHE_DIR", str(tmp_path / "c2"))
+    load_triangles(path)
+    (entry,) = (tmp_path / "c2" / "meshes").glob("*.npz")
+    entry.write_bytes(b"garbage")
+    v, _ = load_triangles(path)
+    assert np.ptp(v[:, 0]) == pytest.approx(0.05)

@@ -14,7 +14,10 @@ stores float32, so STEP coordinates are exact to about 1e-7 relative.
 
 from __future__ import annotations
 
+import hashlib
+import os
 import re
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -24,7 +27,14 @@ import numpy.typing as npt
 from apo.errors import GeometryError, InputFormatError
 from apo.geometry import Polyhedron, polyhedron_from_triangles
 
-__all__ = ["MESH_SUFFIXES", "UNITS", "load_polyhedron", "load_triangles", "step_length_unit"]
+__all__ = [
+    "MESH_SUFFIXES",
+    "UNITS",
+    "cache_dir",
+    "load_polyhedron",
+    "load_triangles",
+    "step_length_unit",
+]
 
 UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 """Length units accepted by ``units=``, and their size in metres."""
@@ -142,6 +152,12 @@ def load_triangles(
     else:
         scale = UNITS[units if units is not None else DEFAULT_MESH_UNITS]
 
+    cache = _cache_file(path, fmt, scale)
+    if cache is not None:
+        hit = _cache_read(cache)
+        if hit is not None:
+            return hit
+
     import trimesh  # lazy: keeps `import apo` cheap
 
     try:
@@ -162,7 +178,82 @@ def load_triangles(
     triangles = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     if len(triangles) == 0 or len(vertices) == 0:
         raise InputFormatError(f"{path}: the file contains no triangles")
+    if cache is not None:
+        _cache_write(cache, vertices, triangles)
     return vertices, triangles
+
+
+# --------------------------------------------------------------------------------------------
+# Cache of read triangles
+# --------------------------------------------------------------------------------------------
+
+_CACHE_FORMAT = 1
+
+
+def cache_dir() -> Path | None:
+    """Folder of the triangle cache, or None when it is off.
+
+    ``APO_CACHE_DIR`` names it; otherwise ``$XDG_CACHE_HOME/apo`` (default
+    ``~/.cache/apo``). ``APO_CACHE=0`` turns the cache off.
+    """
+    if os.environ.get("APO_CACHE", "1") == "0":
+        return None
+    named = os.environ.get("APO_CACHE_DIR")
+    if named:
+        return Path(named)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "apo"
+
+
+def _cache_file(path: Path, fmt: str, scale: float) -> Path | None:
+    """Cache entry of a model file: keyed by its bytes, the scale and the readers' versions.
+
+    Reading a STEP file means importing trimesh and OpenCASCADE and tessellating, about a
+    quarter of a second before any analysis; the triangles of a file already read are
+    taken from here instead. A changed file, scale, trimesh or cascadio gives a new key.
+    """
+    root = cache_dir()
+    if root is None:
+        return None
+    from importlib import metadata
+
+    h = hashlib.sha256()
+    h.update(path.read_bytes())
+    versions = []
+    for dist in ("trimesh", "cascadio"):
+        try:
+            versions.append(metadata.version(dist))
+        except metadata.PackageNotFoundError:
+            versions.append("-")
+    h.update(f"|{fmt}|{scale!r}|{_CACHE_FORMAT}|{'|'.join(versions)}".encode())
+    return root / "meshes" / f"{h.hexdigest()}.npz"
+
+
+def _cache_read(cache: Path) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]] | None:
+    """Return the cached triangles, or None (absent or unreadable: the file is read again)."""
+    try:
+        with np.load(cache, allow_pickle=False) as data:
+            vertices = np.asarray(data["vertices"], dtype=np.float64)
+            triangles = np.asarray(data["triangles"], dtype=np.int64)
+    except (OSError, KeyError, ValueError):
+        return None
+    if vertices.ndim != 2 or vertices.shape[1:] != (3,) or triangles.shape[1:] != (3,):
+        return None
+    return vertices, triangles
+
+
+def _cache_write(
+    cache: Path, vertices: npt.NDArray[np.float64], triangles: npt.NDArray[np.int64]
+) -> None:
+    """Store the triangles (atomically); a cache that cannot be written is skipped."""
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=cache.stem, suffix=".npz", dir=cache.parent)
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, vertices=vertices, triangles=triangles)
+        os.replace(tmp, cache)
+    except OSError:
+        return
 
 
 PLAUSIBLE_SIZE = (1e-3, 10.0)
