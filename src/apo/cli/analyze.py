@@ -144,6 +144,10 @@ class PlotWorker:
 
     def plot(self, rec: Recognition, path: Path, title: str | None) -> bool:
         """Hand the plot to the worker and wait for it; return True if it wrote ``path``."""
+        return self.submit(rec, path, title) and self.result(path)
+
+    def submit(self, rec: Recognition, path: Path, title: str | None) -> bool:
+        """Hand the plot to the worker without waiting; False if there is no worker."""
         if self.pid is None or self.wfd is None:
             return False
         import pickle
@@ -154,6 +158,10 @@ class PlotWorker:
                 fh.write(pickle.dumps((rec.task, rec.times, str(path), title)))
         except OSError:
             pass
+        return True
+
+    def result(self, path: Path) -> bool:
+        """Wait for a submitted plot; return True if the worker wrote ``path``."""
         return self._wait() and path.exists()
 
     def close(self) -> None:
@@ -188,6 +196,10 @@ def write_outputs(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
+    png = out_dir / "dof.png"
+    want_plot = plot and bool(rec.task.states)
+    # the worker draws while this process writes the other files
+    submitted = want_plot and worker is not None and worker.submit(rec, png, title)
     data = task_to_dict(rec.task)
     target = out_dir / "task.json"
     with atomic_path(target) as tmp:
@@ -197,11 +209,10 @@ def write_outputs(
     with atomic_path(frames) as tmp:
         tmp.write_text(frames_csv(rec), encoding="utf-8")
     written["frames"] = frames
-    if plot and rec.task.states:
-        from apo.report.plot import plot_dof
+    if want_plot:
+        if not (submitted and worker is not None and worker.result(png)):
+            from apo.report.plot import plot_dof
 
-        png = out_dir / "dof.png"
-        if worker is None or not worker.plot(rec, png, title):
             with atomic_path(png) as tmp:
                 plot_dof(rec.task, tmp, times=rec.times, title=title)
         written["plot"] = png
