@@ -39,7 +39,7 @@ def make_task(units: str = "mm") -> TaskModel:
     )  # fmt: skip
     push = SubSkill(
         "push_to", "rotation", "I", np.array([0.0, 1.0, 0.0]), np.array([0.001, 0.0, 0.003]),
-        "contacts",
+        "contacts", np.array([[0.0, 1.0, 0.0]]),
     )  # fmt: skip
     transitions = (
         Transition("A", "B", 5, {"translation": (("M", "SD"),), "rotation": (("M", "SD"),)},
@@ -84,7 +84,7 @@ def test_lengths_written_in_the_task_units():
     assert d["transitions"][0]["dof_transitions"]["translation"] == [["M", "SD"]]
     assert d["transitions"][0]["subskills"][0] == {
         "kind": "push_to", "space": "rotation", "type": "I", "direction": [0.0, 1.0, 0.0],
-        "point": [1.0, 0.0, 3.0], "source": "contacts",
+        "point": [1.0, 0.0, 3.0], "source": "contacts", "subspace": [[0.0, 1.0, 0.0]],
     }  # fmt: skip
     assert d["models"]["grasped"] == {"path": "peg.step", "sha256": "a" * 64, "name": "peg"}
     assert d["transitions"][0]["decomposition"] == {

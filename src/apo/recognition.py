@@ -691,6 +691,7 @@ def _transition_record(
             else np.asarray(s.direction, dtype=np.float64).reshape(3),
             point=None if s.point is None else np.asarray(s.point, dtype=np.float64).reshape(3),
             source=s.source,
+            subspace=np.asarray(s.subspace, dtype=np.float64).reshape(-1, 3),
         )
         for s in tr.subskills
     )

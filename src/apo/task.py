@@ -156,6 +156,10 @@ class SubSkill:
         What fixed ``direction``: ``"contacts"`` (separating normals of the elements that
         appear or disappear), ``"detaching_direction"``, ``"poses"`` (the observed
         displacement) or ``"none"``.
+    subspace : ndarray, shape (k, 3)
+        Orthonormal rows spanning every direction (translation) or axis (rotation) the
+        sub-skill acts in, sign-free; ``direction`` lies in it. ``k`` is the number of unit
+        DOF transitions behind the sub-skill (two for a slide that frees two rotations).
     """
 
     kind: str
@@ -164,6 +168,7 @@ class SubSkill:
     direction: FloatArray
     point: FloatArray | None = None
     source: str = "none"
+    subspace: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -385,6 +390,7 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
                     "direction": _vec(u.direction),
                     "point": None if u.point is None else _vec(u.point, k),
                     "source": u.source,
+                    "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
                 }
                 for u in t.subskills
             ],
@@ -662,6 +668,15 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
                         else rd.vector(ud["point"], f"{wu}.point", 3) * k
                     ),
                     source=rd.string(ud.get("source", "none"), f"{wu}.source"),
+                    subspace=np.array(
+                        [
+                            rd.vector(row, f"{wu}.subspace[{r}]", 3)
+                            for r, row in enumerate(
+                                rd.lst(ud.get("subspace", []), f"{wu}.subspace")
+                            )
+                        ],
+                        dtype=np.float64,
+                    ).reshape(-1, 3),
                 )
             )
         transitions.append(
