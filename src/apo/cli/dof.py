@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import warnings
 from pathlib import Path
@@ -64,10 +63,8 @@ def load_contacts(path: str) -> list[Any]:
 
     Points and normals must be JSON numbers (not strings or booleans); ``"normals"`` is a list
     of ``[nx, ny, nz]`` (a single ``[nx, ny, nz]`` is accepted as one normal). Only the
-    direction of a normal matters: each is divided by its largest absolute entry when that
-    exceeds 1, so that huge but finite components do not overflow. Points whose coordinates
-    exceed ``1e100`` are all divided by the same power of two (exact; the DOF indices do
-    not change under uniform scaling).
+    direction of a normal matters; huge but finite normals and coordinates are scaled
+    exactly by :mod:`apo.dof` (the DOF indices do not change under uniform scaling).
 
     Raises
     ------
@@ -111,16 +108,9 @@ def load_contacts(path: str) -> list[Any]:
             )
         normals.append([_numbers(n, f"contact {i}: normal {j}", path) for j, n in enumerate(ns)])
     pts = np.array(points, dtype=np.float64).reshape(-1, 3)
-    big = float(np.abs(pts[np.isfinite(pts)]).max(initial=0.0))
-    if big > 1e100:
-        pts = pts * 2.0 ** -math.frexp(big)[1]
-    scaled = []
-    for ns_i in normals:
-        n = np.array(ns_i, dtype=np.float64)
-        top = np.abs(n[np.isfinite(n)]).max(initial=0.0)
-        scaled.append(n / top if top > 1.0 else n)
+    # apo.dof scales huge normals and coordinates itself (exact powers of two)
     try:
-        checked, unit = check_arrays(pts, scaled)
+        checked, unit = check_arrays(pts, [np.array(n, dtype=np.float64) for n in normals])
     except InputFormatError as exc:
         raise InputFormatError(f"{path}: {exc}") from None
     return [ContactPoint(point=p.copy(), normals=n) for p, n in zip(checked, unit, strict=True)]
