@@ -76,9 +76,6 @@ def _subskills(task):
 def test_real_demonstration_end_to_end(real_data_dir, tmp_path, capsys):
     from apo.task import task_from_dict
 
-    for mod in ("apo.io.poses", "apo.transitions"):
-        pytest.importorskip(mod, reason=f"{mod} not available yet")
-
     out = tmp_path / "out"
     code = main(["analyze", str(real_data_dir / "peg_in_hole.pose.list"), "--out", str(out)])
     captured = capsys.readouterr()
@@ -164,7 +161,6 @@ def test_bad_pose_list_exits_2_without_output(real_data_dir, tmp_path, capsys, m
     import re
     import shutil
 
-    pytest.importorskip("apo.io.poses", reason="apo.io.poses not available yet")
     for model in ("peg.step", "hole.step"):
         shutil.copy(real_data_dir / model, tmp_path / model)
     demo = tmp_path / "bad.pose.list"
@@ -181,8 +177,6 @@ def test_bad_pose_list_exits_2_without_output(real_data_dir, tmp_path, capsys, m
 def test_demo_end_to_end(tmp_path, capsys):
     from apo.task import task_from_dict
 
-    for mod in ("apo.synthetic", "apo.transitions"):
-        pytest.importorskip(mod, reason=f"{mod} not available yet")
     out = tmp_path / "demo"
     code = main(["demo", "--out", str(out), "--seed", "3"])
     captured = capsys.readouterr()
