@@ -169,11 +169,6 @@ def test_check_sequence_defaults_times_to_frame_indices():
 # ---------------------------------------------------------------------------------------------
 
 
-def _needs_pipeline():
-    # The pipeline calls apo.transitions, written concurrently.
-    pytest.importorskip("apo.transitions", reason="apo.transitions not available yet")
-
-
 def _table_and_cube():
     table = box([0.4, 0.4, 0.1], center=[0.0, 0.0, -0.05], name="table")
     cube = box([0.05, 0.05, 0.05], center=[0.0, 0.0, 0.025], name="cube")
@@ -191,7 +186,6 @@ def _lower_and_slide(n_down=20, n_slide=20):
 def test_cube_on_table_two_states_and_a_push_to():
     from apo.recognition import recognize_frames
 
-    _needs_pipeline()
     cube, table = _table_and_cube()
     t, X = _lower_and_slide()
     rec = recognize_frames(cube, table, t, X, threshold=0.002)
@@ -221,7 +215,6 @@ def test_cube_on_table_two_states_and_a_push_to():
 def test_noise_blips_are_repaired_and_recorded():
     from apo.recognition import recognize_frames
 
-    _needs_pipeline()
     cube, table = _table_and_cube()
     t, X = _lower_and_slide(30, 30)
     # Tilt the cube at one sliding frame so that only one bottom edge stays within the
@@ -363,7 +356,6 @@ def test_straight_insertion_free_singular_critical_seated():
     from apo.recognition import recognize_frames
     from apo.shapes import t_peg, u_block
 
-    _needs_pipeline()
     peg, block = t_peg(), u_block()
     t, X = _straight_insertion()
     rec = recognize_frames(peg, block, t, X)
