@@ -676,11 +676,10 @@ def _transition_record(
         X_EG_before=a.X_EG,
         X_EG_after=b.X_EG,
     )
-    dof_t: dict[str, tuple[tuple[str, str], ...]] = {}
-    raw = tr.dof_transitions
-    for sp in ("translation", "rotation"):
-        items = raw.get(sp, ()) if isinstance(raw, Mapping) else getattr(raw, sp, ())
-        dof_t[sp] = tuple(_pair(x) for x in items)
+    dof_t = {
+        sp: tuple(_pair(x) for x in tr.dof_transitions.get(sp, ()))
+        for sp in ("translation", "rotation")
+    }
     subs = tuple(
         SubSkill(
             kind=_enum_str(s.kind),
@@ -711,12 +710,9 @@ def _transition_record(
     )
 
 
-def _pair(x: Any) -> tuple[str, str]:
-    if isinstance(x, tuple | list) and len(x) == 2:
-        return (_enum_str(x[0]), _enum_str(x[1]))
-    src = getattr(x, "source", None) or getattr(x, "before", None) or x[0]
-    dst = getattr(x, "target", None) or getattr(x, "after", None) or x[1]
-    return (_enum_str(src), _enum_str(dst))
+def _pair(x: tuple[Any, Any]) -> tuple[str, str]:
+    """Return a unit DOF transition ``(DofKind, DofKind)`` as ``("M", "D")``."""
+    return (_enum_str(x[0]), _enum_str(x[1]))
 
 
 # --------------------------------------------------------------------------------------------
