@@ -598,6 +598,16 @@ def _element_normals(
     ]
 
 
+def _changed_elements(kind: SubskillKind, ctx: _Ctx) -> list[tuple[FloatArray, FloatArray]]:
+    """``(point, normals)`` of the elements a sub-skill is about.
+
+    The lost ones for a release, the new ones for a push-to or a slide.
+    """
+    if kind is SubskillKind.RELEASE:
+        return _element_normals(ctx.before_state, ctx.after_state)
+    return _element_normals(ctx.after_state, ctx.before_state)
+
+
 def _rotation_twists(geometry: DofGeometry) -> tuple[FloatArray, FloatArray]:
     """Return the rotational maintaining twists ``(m_r, 6)`` and their axes ``(m_r, 3)``."""
     r_maint = np.asarray(geometry.rotation_maintaining, dtype=np.float64).reshape(-1, 3)
@@ -650,15 +660,12 @@ def _translation_direction(
     if sub.shape[0] == 0:
         return None, "none"
     proj = sub.T @ sub
-    # 1. contact normals: new elements (push-to, slide) or lost ones (release)
-    if kind is SubskillKind.RELEASE:
-        elems = _element_normals(ctx.before_state, ctx.after_state)
-        sign = 1.0  # move away from the lost contact: along its separating normal
-    else:
-        elems = _element_normals(ctx.after_state, ctx.before_state)
-        # push-to: into the new contact (-n); slide: towards where the support ends (+n of
-        # the edge's other face, which points on in the direction of motion)
-        sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
+    # 1. contact normals: new elements (push-to, slide) or lost ones (release). Release:
+    # away from the lost contact, along its separating normal; push-to: into the new contact
+    # (-n); slide: towards where the support ends (+n of the edge's other face, which points
+    # on in the direction of motion)
+    elems = _changed_elements(kind, ctx)
+    sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
     if elems:
         n_sum = np.sum([ns.sum(axis=0) for _, ns in elems], axis=0)
         u = _unit(sign * (proj @ n_sum))
@@ -725,12 +732,8 @@ def _rotation_direction(
 
     if xis is not None:
         xis = through_pivot(xis)
-        if kind is SubskillKind.RELEASE:
-            elems = _element_normals(ctx.before_state, ctx.after_state)
-            sign = 1.0
-        else:
-            elems = _element_normals(ctx.after_state, ctx.before_state)
-            sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
+        elems = _changed_elements(kind, ctx)
+        sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
         if elems:
             # pairing of twist and contact wrench [P x F; F]: > 0 moves away from the contact
             wrench = np.zeros(6)
@@ -768,11 +771,7 @@ def _pivot(kind: SubskillKind, ctx: _Ctx) -> FloatArray | None:
     moves least between the two states' poses (the point that stays put while the rest
     turns into or out of contact); without poses, the first in element order.
     """
-    if kind is SubskillKind.RELEASE:
-        elems = _element_normals(ctx.before_state, ctx.after_state)
-    else:
-        elems = _element_normals(ctx.after_state, ctx.before_state)
-    pts = [p for p, _ in elems]
+    pts = [p for p, _ in _changed_elements(kind, ctx)]
     if not pts:
         pts = [
             np.asarray(e.point, dtype=np.float64)
