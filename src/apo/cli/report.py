@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         files.append(file_entry("per-frame data", csv_path))
     G, E, model_files, notes = load_models(doc, task_path.parent, units=args.model_units)
     files += model_files
-    tracks = []
+    tracks: list[Any] = []
     if args.motion:
         from apo.report.motion import read_motion_tracks
 
