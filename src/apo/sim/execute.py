@@ -42,6 +42,8 @@ __all__ = ["STALL_TIME", "PrimitiveRun", "run_playback", "run_program"]
 
 STALL_TIME = 3.0
 """Seconds a primitive may run beyond its nominal duration before it counts as jammed."""
+ROTATE_SLIDES_BY_POSITION = True
+"""Execute a rotational slide by a position-controlled turn about its axis (see module doc)."""
 _CONFIRM = 10
 """Steps a stop condition must hold in a row (filters contact impacts)."""
 _REACH_TOL = 2e-4
@@ -52,6 +54,8 @@ _SETTLED = 0.01
 """Angular speed (rad/s) below which a type I rotational push-to has settled."""
 _TOUCH = 0.5
 """Contact force (N) that counts as touching when a type I push-to settles."""
+_ANGLE_MARGIN = 0.087
+"""Radians added to the angle of a position-controlled turn for its travel limit."""
 _ANGLE_TOL = 0.035
 """Radians: a position-controlled rotational slide has arrived when this close to its target
 orientation about the axis (the plan's orientation may be off by the environment's offset)."""
@@ -165,6 +169,66 @@ def _projector(rows: FloatArray) -> FloatArray:
     return out
 
 
+@dataclass
+class _Chain:
+    """Paths one after the other."""
+
+    legs: list[_Path]
+
+    @property
+    def duration(self) -> float:
+        return sum(p.duration for p in self.legs)
+
+    def at(self, t: float) -> FloatArray:
+        for p in self.legs[:-1]:
+            if t <= p.duration:
+                return p.at(t)
+            t -= p.duration
+        return self.legs[-1].at(t)
+
+
+def _approach_path(
+    prim: Any,
+    X0: FloatArray,
+    center_G: FloatArray,
+    speeds: tuple[float, float],
+    up: FloatArray | None,
+) -> _Chain:
+    """Path of an approach: through the primitive's ``via`` poses if any, else lift first.
+
+    Without via poses the object first moves along ``up`` (the reverse of the first
+    translational push-to that follows) until it is level with the stand-off pose, then goes
+    straight: leaving a resting place sideways through the environment is the usual way a
+    straight approach collides.
+    """
+    goals = [np.asarray(X, dtype=np.float64) for X in getattr(prim, "via", ())]
+    goals.append(prim.target.X_EG)
+    if not goals[:-1] and up is not None and np.linalg.norm(up) > 0:
+        c0 = X0[:3, :3] @ center_G + X0[:3, 3]
+        c1 = goals[-1][:3, :3] @ center_G + goals[-1][:3, 3]
+        rise = float((c1 - c0) @ up)
+        if rise > 0:
+            X_up = X0.copy()
+            X_up[:3, 3] += rise * np.asarray(up)
+            goals.insert(0, X_up)
+    legs, X_prev = [], X0
+    for X in goals:
+        legs.append(_path(X_prev, X, center_G, *speeds))
+        X_prev = X
+    return _Chain(legs)
+
+
+def _via_path(
+    prim: Any, X0: FloatArray, center_G: FloatArray, speeds: tuple[float, float]
+) -> _Chain:
+    """Path through the poses of the folded transitions (``prim.via``) to the target."""
+    legs, X_prev = [], X0
+    for X in [*(np.asarray(v, dtype=np.float64) for v in prim.via), prim.target.X_EG]:
+        legs.append(_path(X_prev, X, center_G, *speeds))
+        X_prev = X
+    return _Chain(legs)
+
+
 def _to_G(X: FloatArray, p: FloatArray) -> FloatArray:
     out: FloatArray = X[:3, :3].T @ (p - X[:3, 3])
     return out
@@ -202,18 +266,30 @@ def _expected(prim: Any, X_from: FloatArray, center_G: FloatArray) -> float:
 
 
 def run_primitive(
-    hand: Hand, prim: Any, X_plan: FloatArray, speeds: tuple[float, float], sample: Sampler
+    hand: Hand,
+    prim: Any,
+    X_plan: FloatArray,
+    speeds: tuple[float, float],
+    sample: Sampler,
+    up: FloatArray | None = None,
 ) -> PrimitiveRun:
     """Execute one primitive from the hand's current pose; return what happened.
 
     ``X_plan`` is the planned pose at the primitive's start (for the expected travel);
-    ``speeds`` the plan's ``(speed m/s, angular_speed rad/s)``.
+    ``speeds`` the plan's ``(speed m/s, angular_speed rad/s)``; ``up`` the direction an
+    approach leaves along first (:func:`_approach_path`).
     """
     kind = str(prim.kind)
     comp = prim.compliance
     X0 = hand.pose()
     center_G = _to_G(prim.target.X_EG, comp.center)
-    path = _path(X0, prim.target.X_EG, center_G, *speeds)
+    path: _Path | _Chain = _path(X0, prim.target.X_EG, center_G, *speeds)
+    guard_from = 0.0  # guarded stops apply once the via poses (folded transitions) are passed
+    if kind == "approach":
+        path = _approach_path(prim, X0, center_G, speeds, up)
+    elif len(getattr(prim, "via", ())):
+        path = _via_path(prim, X0, center_G, speeds)
+        guard_from = sum(p.duration for p in path.legs[:-1])
     St = comp.force_directions.T @ comp.force_directions
     Sr = comp.torque_axes.T @ comp.torque_axes
     f_cmd = comp.force_directions.T @ comp.forces
@@ -226,7 +302,14 @@ def run_primitive(
     if settle:
         t_cmd = t_cmd - d * (d @ t_cmd)
         Sr = _with_axis(Sr, d)
-    elif kind == "slide" and rot:
+    turn = kind == "slide" and rot and ROTATE_SLIDES_BY_POSITION
+    travel_limit = prim.stop.travel
+    if turn:
+        # the turn goes to the target orientation whatever the sign of the recorded axis:
+        # its safeguard is the angle to that orientation (plus the plan's margin)
+        to_go = abs(_angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d))
+        travel_limit = max(travel_limit, to_go + _ANGLE_MARGIN)
+        d = d if _angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d) >= 0 else -d
         # a rotational slide turns by the planned angle under position control about its
         # axis (the rest stays as planned): a pure torque wedges the object (docs/sim.md)
         t_cmd = t_cmd - d * (d @ t_cmd)
@@ -261,24 +344,23 @@ def run_primitive(
                 hit = float(-(Tc @ d)) >= prim.stop.torque
             else:
                 hit = float(-(Fc @ d)) >= prim.stop.force
-            if hit:
+            if hit and hand.time - t0 >= guard_from:
                 streak += 1
             else:
                 streak = 0
             if streak >= _CONFIRM:
                 outcome = "contact"
                 break
-            if abs(travel) > prim.stop.travel:
+            if abs(travel) > travel_limit:
                 outcome = "travel"
                 break
-            done = kind == "slide" and (
-                travel >= expected
-                or (
-                    rot
-                    and hand.time - t0 >= path.duration
-                    and abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
+            if kind == "slide" and turn:
+                # arrived at the planned orientation about the axis (within the offset)
+                done = hand.time - t0 >= path.duration and (
+                    abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
                 )
-            )
+            else:
+                done = kind == "slide" and travel >= expected
         if done:
             outcome = "reached"
             break
@@ -359,22 +441,26 @@ def _entrance(program: Any, k: int) -> FloatArray:
 def run_program(hand: Hand, program: Any, sample: Sampler) -> list[PrimitiveRun]:
     """Execute every primitive of ``program`` in order; stop at the first failure.
 
-    An ``align`` that starts in contact (sensed force above ``_TOUCH``) aligns by
-    compliance (:func:`align_in_contact`): with an environment the plan does not know
-    exactly, only the contacts can tell where the entrance is. In free space it servoes to
-    the planned aligned pose within the alignment tolerance.
+    An ``align`` aligns by compliance (:func:`align_in_contact`), not by servoing to the
+    planned aligned pose: with an environment the plan does not know exactly (an offset
+    larger than the clearance), only the contacts can tell where the entrance is, and the
+    object may already have passed it during the previous move.
     """
     pp = program.parameters
     speeds = (pp.speed, pp.angular_speed)
     runs: list[PrimitiveRun] = []
     X_plan = program.start_X_EG
+    pushes = [
+        p.direction
+        for p in program.primitives
+        if str(p.kind) == "push_to" and p.space is not None and str(p.space) == "translation"
+    ]
+    up = -np.asarray(pushes[0], dtype=np.float64) if pushes else None
     for k, prim in enumerate(program.primitives):
-        X = hand.pose()
-        F, _, _ = hand.contact_wrench(X[:3, 3])
-        if str(prim.kind) == "align" and np.linalg.norm(F) > _TOUCH:
+        if str(prim.kind) == "align" and prim.alignment is not None:
             run = align_in_contact(hand, prim, _entrance(program, k), pp.hold_force, sample)
         else:
-            run = run_primitive(hand, prim, X_plan, speeds, sample)
+            run = run_primitive(hand, prim, X_plan, speeds, sample, up)
         runs.append(run)
         X_plan = prim.target.X_EG
         if not run.ok:

@@ -132,23 +132,37 @@ def random_motion(
     return X
 
 
-def _state_ids(task: TaskModel) -> dict[frozenset[tuple[str, Any, Any]], str]:
+def _key(elements: Any) -> frozenset[tuple[str, Any, Any]]:
+    return frozenset(
+        (getattr(e.kind, "value", e.kind), tuple(e.grasped), tuple(e.environment)) for e in elements
+    )
+
+
+def state_ids(finder: Any, task: TaskModel) -> dict[frozenset[tuple[str, Any, Any]], str]:
+    """Element sets of the task's states, by the ids of ``finder``'s models.
+
+    Each state is known by its elements as recorded in the task and as ``finder`` finds them
+    at the state's pose: the models loaded for the replay may number their features
+    differently from the ones the task was analysed with (a model file re-triangulated or
+    re-ordered); the second key is the honest mapping then.
+    """
     out: dict[frozenset[tuple[str, Any, Any]], str] = {}
+    found = finder.find_batch(np.stack([s.X_EG for s in task.states]))
+    for s, f in zip(task.states, found, strict=True):
+        out.setdefault(_key(f.elements), s.id)
     for s in task.states:
-        key = frozenset((e.kind, tuple(e.grasped), tuple(e.environment)) for e in s.elements)
-        out.setdefault(key, s.id)
+        out.setdefault(_key(s.elements), s.id)
     return out
 
 
 def _visits(
-    finder: Any, task: TaskModel, times: FloatArray, X: FloatArray
+    finder: Any, ids: dict[frozenset[Any], str], times: FloatArray, X: FloatArray
 ) -> tuple[list[Visit], frozenset[Any]]:
-    ids = _state_ids(task)
     states = finder.find_batch(X)
     visits: list[Visit] = []
     last_key: frozenset[Any] | None = None
     for t, s in zip(times, states, strict=True):
-        key = frozenset((e.kind.value, tuple(e.grasped), tuple(e.environment)) for e in s.elements)
+        key = _key(s.elements)
         if visits and key == last_key:
             v = visits[-1]
             visits[-1] = Visit(v.state, v.t_start, float(t), v.n_elements)
@@ -264,13 +278,15 @@ def replay(
         runs = run_program(hand, program, sample)
         mode = "skills"
     wall = time.perf_counter() - wall
-    rec_t.append(hand.time)
-    rec_X.append(X_EW @ hand.pose())
+    if not rec_t or hand.time > rec_t[-1]:
+        rec_t.append(hand.time)
+        rec_X.append(X_EW @ hand.pose())
     T, X = np.asarray(rec_t), np.stack(rec_X)
     threshold = max(task.threshold, 3.0 * clearance)
     finder = ContactFinder(grasped, environment, threshold=threshold)
-    visits, final_key = _visits(finder, task, T, X)
-    final_id = _state_ids(task).get(final_key)
+    ids = state_ids(finder, task)
+    visits, final_key = _visits(finder, ids, T, X)
+    final_id = ids.get(final_key)
     goal = task.states[-1].id
     success = final_id == goal
     failed = [r for r in runs if not r.ok]
