@@ -16,6 +16,19 @@ if ! .venv/bin/python -c "import open3d" >/dev/null 2>&1; then
     fi
   fi
 fi
+# The report's browser tests drive Debian's Chromium headless (tests/test_report_browser.py).
+if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "installing chromium and chromium-driver for the browser tests"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null \
+      || echo "warning: could not install chromium; the browser tests will be skipped" >&2
+  elif command -v sudo >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+    sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null \
+      || echo "warning: could not install chromium; the browser tests will be skipped" >&2
+  else
+    echo "warning: no chromium/chromedriver; the browser tests will be skipped" >&2
+  fi
+fi
 echo "== ruff check";  .venv/bin/ruff check src tests benchmarks
 echo "== ruff format"; .venv/bin/ruff format --check src tests benchmarks
 echo "== mypy";        .venv/bin/mypy

@@ -61,6 +61,7 @@ def register(subparsers: Any) -> None:
         help="contact distance threshold in --units (default: scale-aware)",
     )
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
+    p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
     from apo.cli.track import add_tracking_options
 
     add_tracking_options(p)
@@ -186,8 +187,11 @@ def write_outputs(
     plot: bool = True,
     title: str | None = None,
     worker: PlotWorker | None = None,
+    report: Callable[[], str] | None = None,
 ) -> dict[str, Path]:
-    """Write ``task.json``, ``frames.csv`` (and ``dof.png``) to ``out_dir`` atomically.
+    """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) to ``out_dir`` atomically.
+
+    ``report`` returns the text of ``report.html`` (``apo.report.sources.recognition_report``).
 
     Each file is written to a temporary file in ``out_dir`` and renamed into place, so an
     interrupted run never leaves a half-written file. Returns the paths written.
@@ -216,7 +220,26 @@ def write_outputs(
             with atomic_path(png) as tmp:
                 plot_dof(rec.task, tmp, times=rec.times, title=title)
         written["plot"] = png
+    if report is not None:
+        html = out_dir / "report.html"
+        with atomic_path(html) as tmp:
+            tmp.write_text(report(), encoding="utf-8")
+        written["report"] = html
     return written
+
+
+def report_maker(
+    rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
+) -> Callable[[], str]:
+    """Return a callable that renders ``report.html`` of ``rec`` (inputs: files to hash)."""
+
+    def make() -> str:
+        from apo.report.sources import file_entry, recognition_report
+
+        files = [file_entry("demonstration", p) for p in inputs if p.is_file()]
+        return recognition_report(rec, grasped=G, environment=E, X_observed=X_observed, files=files)
+
+    return make
 
 
 def frames_csv(rec: Recognition) -> str:
@@ -350,7 +373,12 @@ def _run(args: argparse.Namespace, demo: Path, worker: PlotWorker | None) -> int
     finally:
         close()
     written = write_outputs(
-        rec, out, plot=not args.no_plot, title=f"DOF indices: {demo.name}", worker=worker
+        rec,
+        out,
+        plot=not args.no_plot,
+        title=f"DOF indices: {demo.name}",
+        worker=worker,
+        report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
     )
     report(rec, written, as_json=args.json)
     return 0

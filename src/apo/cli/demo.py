@@ -70,6 +70,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="print task.json instead of the table")
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
+    p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
     p.add_argument(
         "--from-frames",
         action="store_true",
@@ -224,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, worker: Any) -> int:
-    from apo.cli.analyze import model_ref, report, write_outputs
+    from apo.cli.analyze import model_ref, report, report_maker, write_outputs
     from apo.recognition import recognize_frames
 
     out = Path(args.out)
@@ -246,7 +247,14 @@ def _run(args: argparse.Namespace, worker: Any) -> int:
         source=dem.source,
     )
     written = write_outputs(
-        rec, out, plot=not args.no_plot, title=f"DOF indices: {dem.source}", worker=worker
+        rec,
+        out,
+        plot=not args.no_plot,
+        title=f"DOF indices: {dem.source}",
+        worker=worker,
+        report=None
+        if args.no_report
+        else report_maker(rec, dem.grasped, dem.environment, dem.X_EG, []),
     )
     report(rec, written, as_json=args.json)
     return 0

@@ -1,0 +1,375 @@
+"""The offline interactive report: one self-contained HTML file per recognised task.
+
+The page is a static viewer shipped inside the package (``apo/report/viewer/``: an HTML
+template, a stylesheet and a script) filled with the task's data as one JSON document, and
+with the plotly.js bundle of the installed ``plotly`` package inlined: no CDN, no server,
+every asset in the file. Writing it costs a read of the bundle and a :func:`json.dumps` of
+the data; nothing is drawn in Python. The page itself draws, with plotly.js:
+
+- a 3D replay of both objects (time slider, play button), the grasped object coloured by
+  its contact state, the contact points with their separating normals (singular elements
+  marked), the corrected pose beside the observed one, and further tracks (planned motion,
+  simulated execution) where given;
+- the DOF timeline (translation and rotation M, D, C, SM, SD, SC, restraining) with the
+  state letters, linked to the slider;
+- the state graph of the paper's Fig. 24/25 (eight numbers per state, arrows labelled with
+  sub-skills and their directions, critical transitions marked, rejected runs crossed out
+  with their reason);
+- the tables of states, transitions and rejected runs, and the inputs.
+
+Per-frame numbers travel as little-endian typed arrays in base64 (``{"dtype": "f4",
+"shape": [n, 7], "b64": ...}``); a demonstration longer than :data:`MAX_REPLAY_FRAMES`
+frames is decimated for the replay (every state keeps its first and last frame).
+See ``docs/report.md``.
+"""
+
+from __future__ import annotations
+
+import base64
+import functools
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import ApoError
+
+if TYPE_CHECKING:
+    from apo.geometry import Polyhedron
+    from apo.task import TaskModel
+
+__all__ = [
+    "MAX_REPLAY_FRAMES",
+    "FrameTrack",
+    "MotionTrack",
+    "pack_array",
+    "plotly_js",
+    "poses_to_rows",
+    "report_data",
+    "report_html",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+MAX_REPLAY_FRAMES = 6000
+"""Frames of the replay at most; longer demonstrations are decimated (state ends kept)."""
+
+SCHEMA = "apo.report/1"
+"""Schema of the JSON document embedded in the page (``docs/report.md``)."""
+
+_PLACEHOLDERS = ("__APO_TITLE__", "__APO_CSS__", "__APO_PLOTLY__", "__APO_DATA__", "__APO_JS__")
+
+
+@dataclass(frozen=True)
+class FrameTrack:
+    """Per-frame data of the demonstration for the replay.
+
+    Attributes
+    ----------
+    times : ndarray, shape (N,)
+        Seconds.
+    state_ids : sequence of str, length N
+        Task state id of each frame.
+    X_observed : ndarray, shape (N, 4, 4), metres, or None
+        Observed poses of G in E.
+    X_corrected : ndarray, shape (N, 4, 4), metres, or None
+        Poses corrected so that the frame's contacts hold.
+    residual_before, residual_after : ndarray, shape (N,), metres, or None
+        Largest contact distance before and after the correction.
+    converged, repaired : ndarray of bool, shape (N,), or None
+    source : str
+        Where the numbers came from (``"recognition"``, ``"frames.csv"``, ``"task states"``).
+    """
+
+    times: FloatArray
+    state_ids: Sequence[str]
+    X_observed: FloatArray | None = None
+    X_corrected: FloatArray | None = None
+    residual_before: FloatArray | None = None
+    residual_after: FloatArray | None = None
+    converged: npt.NDArray[np.bool_] | None = None
+    repaired: npt.NDArray[np.bool_] | None = None
+    source: str = "recognition"
+
+
+@dataclass(frozen=True)
+class MotionTrack:
+    """A further replay track: a pose sequence of G in E with a label per sample.
+
+    Attributes
+    ----------
+    name : str
+        Shown in the track selector (``"planned motion"``, ``"simulated execution"``).
+    kind : str
+        ``"planned"`` or ``"executed"``.
+    times : ndarray, shape (N,)
+        Seconds.
+    X_EG : ndarray, shape (N, 4, 4), metres
+    labels : sequence of str, length N
+        What each sample is (sub-skill, segment), shown beside the slider.
+    note : str
+        One line about the track (e.g. the replay's verdict).
+    """
+
+    name: str
+    kind: str
+    times: FloatArray
+    X_EG: FloatArray
+    labels: Sequence[str]
+    note: str = ""
+
+
+def pack_array(a: npt.ArrayLike, dtype: str) -> dict[str, Any]:
+    """Return ``{"dtype", "shape", "b64"}``: ``a`` as little-endian ``dtype`` bytes in base64.
+
+    ``dtype`` is one of ``"f4"``, ``"f8"``, ``"u1"``, ``"u2"``, ``"u4"``, ``"i4"`` (the
+    typed arrays of JavaScript).
+    """
+    arr = np.ascontiguousarray(np.asarray(a), dtype=np.dtype(dtype).newbyteorder("<"))
+    return {
+        "dtype": dtype,
+        "shape": list(arr.shape),
+        "b64": base64.b64encode(arr.tobytes()).decode("ascii"),
+    }
+
+
+def poses_to_rows(X: npt.ArrayLike, scale: float) -> FloatArray:
+    """Return ``(N, 7)`` rows ``x y z qw qx qy qz`` of poses ``X`` (N, 4, 4), lengths * scale.
+
+    Quaternions are unit with ``qw >= 0`` (``docs/conventions.md``).
+    """
+    from scipy.spatial.transform import Rotation
+
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 4, 4)
+    rows = np.empty((X.shape[0], 7))
+    rows[:, :3] = X[:, :3, 3] * scale
+    if X.shape[0]:
+        xyzw = Rotation.from_matrix(X[:, :3, :3]).as_quat()
+        q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+        q[q[:, 0] < 0] *= -1.0
+        rows[:, 3:] = q
+    return rows
+
+
+def replay_indices(state_index: npt.ArrayLike, max_frames: int = MAX_REPLAY_FRAMES) -> Any:
+    """Return the frame indices the replay keeps: all, or a regular subset with state ends.
+
+    Every state run keeps its first and last frame, so no state disappears from the replay.
+    """
+    s = np.asarray(state_index)
+    n = s.shape[0]
+    if n <= max_frames:
+        return np.arange(n)
+    change = np.flatnonzero(np.diff(s) != 0)
+    ends = np.concatenate([[0, n - 1], change, change + 1])
+    budget = max(max_frames - ends.size, 2)
+    regular = np.linspace(0, n - 1, budget).round().astype(np.int64)
+    return np.unique(np.concatenate([regular, ends]))
+
+
+def _mesh_data(poly: Polyhedron, scale: float) -> dict[str, Any]:
+    """Triangles and feature edges of a model, vertices in the task's units."""
+    tris = [np.asarray(t, dtype=np.int64).reshape(-1, 3) for t in poly.face_triangles]
+    T = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+    face_of = np.repeat(np.arange(len(tris)), [t.shape[0] for t in tris])
+    return {
+        "name": poly.name,
+        "vertices": pack_array(np.asarray(poly.vertices) * scale, "f4"),
+        "triangles": pack_array(T, "u4"),
+        "triangle_face": pack_array(face_of, "u4"),
+        "edges": pack_array(np.asarray(poly.edges).reshape(-1, 2), "u4"),
+        "scale": float(poly.scale * scale),
+    }
+
+
+def _frames_data(track: FrameTrack, state_ids: list[str], scale: float) -> dict[str, Any]:
+    """Per-frame arrays of the demonstration track (decimated where long)."""
+    index = {sid: i for i, sid in enumerate(state_ids)}
+    try:
+        s = np.array([index[sid] for sid in track.state_ids], dtype=np.int64)
+    except KeyError as exc:
+        raise ApoError(f"per-frame data name state {exc.args[0]!r}, which the task lacks") from None
+    keep = replay_indices(s)
+    out: dict[str, Any] = {
+        "n_frames": len(s),
+        "source": track.source,
+        "frame": pack_array(keep, "u4"),
+        "t": pack_array(np.asarray(track.times, dtype=np.float64)[keep], "f8"),
+        "state": pack_array(s[keep], "u2"),
+    }
+    for key, X in (("observed", track.X_observed), ("corrected", track.X_corrected)):
+        if X is not None:
+            out[key] = pack_array(poses_to_rows(np.asarray(X)[keep], scale), "f4")
+    for key, v in (
+        ("residual_before", track.residual_before),
+        ("residual_after", track.residual_after),
+    ):
+        if v is not None:
+            out[key] = pack_array(np.asarray(v, dtype=np.float64)[keep] * scale, "f4")
+    for key, b in (("converged", track.converged), ("repaired", track.repaired)):
+        if b is not None:
+            out[key] = pack_array(np.asarray(b, dtype=bool)[keep], "u1")
+    return out
+
+
+def _motion_data(track: MotionTrack, scale: float) -> dict[str, Any]:
+    labels = [str(v) for v in track.labels]
+    names = list(dict.fromkeys(labels))
+    pos = {v: i for i, v in enumerate(names)}
+    keep = replay_indices(np.array([pos[v] for v in labels], dtype=np.int64))
+    return {
+        "name": track.name,
+        "kind": track.kind,
+        "note": track.note,
+        "t": pack_array(np.asarray(track.times, dtype=np.float64)[keep], "f8"),
+        "pose": pack_array(poses_to_rows(np.asarray(track.X_EG)[keep], scale), "f4"),
+        "labels": names,
+        "label": pack_array(np.array([pos[labels[i]] for i in keep]), "u2"),
+    }
+
+
+def report_data(
+    task: TaskModel | Mapping[str, Any],
+    *,
+    grasped: Polyhedron | None = None,
+    environment: Polyhedron | None = None,
+    frames: FrameTrack | None = None,
+    tracks: Sequence[MotionTrack] = (),
+    inputs: Mapping[str, Any] | None = None,
+    notes: Sequence[str] = (),
+) -> dict[str, Any]:
+    """Return the JSON document the viewer draws (schema ``"apo.report/1"``).
+
+    Parameters
+    ----------
+    task : TaskModel or dict
+        The task, or its ``task.json`` form (``apo.task.task_to_dict``), which is embedded
+        as is.
+    grasped, environment : Polyhedron, optional
+        The models (metres); without them the 3D view shows contacts and paths only.
+    frames : FrameTrack, optional
+        Per-frame poses and diagnostics; default: each state's pose over its frames.
+    tracks : sequence of MotionTrack
+        Planned motion and simulated execution.
+    inputs : dict, optional
+        Shown in the inputs panel (files with hashes, apo version, ...).
+    notes : sequence of str
+        Warnings shown at the top of the page (a model not found, a hash mismatch).
+    """
+    from apo import __version__
+    from apo.task import UNITS, task_to_dict
+
+    doc = dict(task) if isinstance(task, Mapping) else task_to_dict(task)
+    units = str(doc["units"])
+    scale = 1.0 / UNITS[units]
+    ids = [str(s["id"]) for s in doc["states"]]
+    if frames is None:
+        frames = frames_from_task_dict(doc)
+    return {
+        "schema": SCHEMA,
+        "apo_version": __version__,
+        "task": doc,
+        "models": {
+            "grasped": None if grasped is None else _mesh_data(grasped, scale),
+            "environment": None if environment is None else _mesh_data(environment, scale),
+        },
+        "frames": _frames_data(frames, ids, scale),
+        "tracks": [_motion_data(t, scale) for t in tracks],
+        "inputs": dict(inputs or {}),
+        "notes": list(notes),
+    }
+
+
+def frames_from_task_dict(doc: Mapping[str, Any]) -> FrameTrack:
+    """Per-frame track from a ``task.json`` document alone: each state's pose held.
+
+    Times are interpolated linearly within each state's ``times``.
+    """
+    from apo.spatial import pose_from_position_quaternion
+    from apo.task import UNITS
+
+    k = UNITS[str(doc["units"])]
+    states = doc["states"]
+    n = int(states[-1]["frames"][1]) + 1 if states else 0
+    n = max(n, int(doc.get("n_frames", 0) or 0))
+    times = np.zeros(n)
+    ids = [""] * n
+    X = np.tile(np.eye(4), (n, 1, 1))
+    for s in states:
+        a, b = (int(v) for v in s["frames"])
+        times[a : b + 1] = np.linspace(float(s["times"][0]), float(s["times"][1]), b - a + 1)
+        ids[a : b + 1] = [str(s["id"])] * (b - a + 1)
+        pose = s["pose"]
+        X[a : b + 1] = pose_from_position_quaternion(
+            np.asarray(pose["position"], dtype=float) * k, np.asarray(pose["quaternion"])
+        )
+    if states and any(not v for v in ids):  # frames after the last state (never, by schema)
+        ids = [v or str(states[-1]["id"]) for v in ids]
+    return FrameTrack(times=times, state_ids=ids, X_corrected=X, source="task states")
+
+
+@functools.cache
+def _asset(name: str) -> str:
+    return resources.files("apo.report").joinpath("viewer", name).read_text(encoding="utf-8")
+
+
+@functools.cache
+def plotly_js() -> str:
+    """Return the plotly.js bundle of the installed ``plotly`` package (for inlining).
+
+    Raises
+    ------
+    ApoError
+        If the ``plotly`` package (extra ``report``) is not installed.
+    """
+    try:
+        spec = resources.files("plotly").joinpath("package_data", "plotly.min.js")
+        text = spec.read_text(encoding="utf-8")
+    except (ModuleNotFoundError, FileNotFoundError) as exc:
+        raise ApoError(
+            f"the HTML report needs the plotly package (pip install 'apo[report]'): {exc}"
+        ) from None
+    return text.replace("</script", "<\\/script")
+
+
+def _json_for_script(data: Any) -> str:
+    """JSON safe inside ``<script type="application/json">`` (no ``</``, no ``<!--``)."""
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+
+
+def report_html(data: Mapping[str, Any], *, title: str | None = None) -> str:
+    """Return the self-contained HTML page of a :func:`report_data` document."""
+    import html
+
+    src = str(data["task"].get("source") or "demonstration")
+    parts = {
+        "__APO_TITLE__": html.escape(title or f"apo report: {src}"),
+        "__APO_CSS__": _asset("report.css"),
+        "__APO_PLOTLY__": plotly_js(),
+        "__APO_DATA__": _json_for_script(data),
+        "__APO_JS__": _asset("report.js").replace("</script", "<\\/script"),
+    }
+    out: list[str] = []
+    rest = _asset("report.html")
+    for key in _PLACEHOLDERS:
+        head, sep, rest = rest.partition(key)
+        if not sep:
+            raise ApoError(f"report template: placeholder {key} missing")
+        out += [head, parts[key]]
+    out.append(rest)
+    return "".join(out)
+
+
+def write_report_file(
+    path: str | Path, data: Mapping[str, Any], *, title: str | None = None
+) -> Path:
+    """Write :func:`report_html` of ``data`` to ``path`` (UTF-8); return the path."""
+    p = Path(path)
+    p.write_text(report_html(data, title=title), encoding="utf-8")
+    return p

@@ -1,0 +1,184 @@
+"""Robot-motion tracks for the report: the planned trajectory and the simulated execution.
+
+``apo report task.json --motion motion.json`` reads, beside ``motion.json`` (schema
+``apo.motion/1``, ``docs/motion.md``):
+
+- ``motion.csv``: the planned pose trajectory of the grasped object, columns
+  ``t, x, y, z, qw, qx, qy, qz`` (seconds, the motion's units, environment frame) and,
+  where present, ``primitive`` (index into ``motion.json`` ``primitives``): each sample is
+  labelled with its primitive (``"2 push_to translation"``);
+- ``replay.csv`` (written by ``apo replay``), same columns: the executed trajectory in the
+  simulator; ``replay.json`` beside it, where present, gives the verdict shown with it.
+
+Without ``motion.csv`` the planned track is the start pose followed by each primitive's
+target pose (one sample per primitive, one second apart).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from apo.errors import InputFormatError
+from apo.report.html import MotionTrack
+
+__all__ = ["read_motion_tracks", "read_pose_track_csv"]
+
+_COLS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputFormatError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFormatError(f"{path}: cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputFormatError(f"{path}: not JSON: {exc}") from None
+
+
+def _primitive_label(p: Mapping[str, Any]) -> str:
+    parts = [str(p.get("index", "?")), str(p.get("kind", "?"))]
+    if p.get("space"):
+        parts.append(str(p["space"]))
+    if p.get("type"):
+        parts.append(f"({p['type']})")
+    if p.get("to"):
+        parts.append(f"-> {p['to']}")
+    return " ".join(parts)
+
+
+def read_pose_track_csv(
+    path: str | Path, *, units: str, labels: Sequence[str] = ()
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Read a ``t,x,y,z,qw,qx,qy,qz[,primitive]`` CSV; return times, poses (metres), labels.
+
+    Raises
+    ------
+    InputFormatError
+        Missing columns, values that are not numbers, zero quaternions, times going back.
+    """
+    from apo.spatial import pose_from_position_quaternion
+    from apo.task import UNITS
+
+    p = Path(path)
+    try:
+        rows = list(csv.DictReader(io.StringIO(p.read_text(encoding="utf-8"))))
+    except OSError as exc:
+        raise InputFormatError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    if not rows:
+        raise InputFormatError(f"{p}: no samples")
+    missing = [c for c in _COLS if c not in rows[0]]
+    if missing:
+        raise InputFormatError(f"{p}: missing column(s) {', '.join(missing)}")
+    vals = np.empty((len(rows), 8))
+    for i, r in enumerate(rows):
+        try:
+            vals[i] = [float(r[c]) for c in _COLS]
+        except (TypeError, ValueError):
+            raise InputFormatError(f"{p}: line {i + 2}: not a number in {r}") from None
+    if np.any(np.diff(vals[:, 0]) < 0):
+        raise InputFormatError(f"{p}: times go backwards")
+    k = UNITS[units]
+    X = np.empty((len(rows), 4, 4))
+    for i, v in enumerate(vals):
+        n = float(np.linalg.norm(v[4:]))
+        if not n > 0:
+            raise InputFormatError(f"{p}: line {i + 2}: zero quaternion")
+        X[i] = pose_from_position_quaternion(v[1:4] * k, v[4:] / n)
+    out_labels: list[str] = []
+    for r in rows:
+        prim = (r.get("primitive") or "").strip()
+        if prim.isdigit() and int(prim) < len(labels):
+            out_labels.append(labels[int(prim)])
+        else:
+            out_labels.append(prim or p.stem)
+    return vals[:, 0], X, out_labels
+
+
+def _targets_track(doc: Mapping[str, Any], k: float, labels: list[str]) -> MotionTrack:
+    from apo.spatial import pose_from_position_quaternion
+
+    poses = [doc["start_pose"]] + [p["target"]["pose"] for p in doc["primitives"]]
+    X = np.array(
+        [
+            pose_from_position_quaternion(
+                np.asarray(q["position"], dtype=float) * k, np.asarray(q["quaternion"])
+            )
+            for q in poses
+        ]
+    )
+    return MotionTrack(
+        name="planned motion (targets)",
+        kind="planned",
+        times=np.arange(len(poses), dtype=float),
+        X_EG=X,
+        labels=["start", *labels],
+        note="no motion.csv: start pose and each primitive's target pose",
+    )
+
+
+def read_motion_tracks(
+    path: str | Path, *, units: str
+) -> tuple[list[MotionTrack], list[dict[str, Any]]]:
+    """Read the planned (and, where present, executed) tracks of ``motion.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``motion.json`` (schema ``apo.motion/1``).
+    units : str
+        The task's units (the tracks are returned in metres whatever the file's).
+
+    Returns
+    -------
+    tracks : list of MotionTrack
+    files : list of dict
+        Inputs-panel entries of the further files read (``motion.csv``, ``replay.csv``).
+    """
+    from apo.report.sources import file_entry
+    from apo.task import UNITS
+
+    p = Path(path)
+    doc = _read_json(p)
+    if not isinstance(doc, dict) or doc.get("schema") != "apo.motion/1":
+        raise InputFormatError(f"{p}: not a motion.json (schema apo.motion/1 expected)")
+    try:
+        munits = str(doc["units"])
+        k = UNITS[munits]
+        labels = [_primitive_label(q) for q in doc["primitives"]]
+    except (KeyError, TypeError) as exc:
+        raise InputFormatError(f"{p}: missing or bad field {exc}") from None
+    del units  # the tracks are in metres; the page converts to the task's units
+    tracks: list[MotionTrack] = []
+    files: list[dict[str, Any]] = []
+    csv_path = p.with_name("motion.csv")
+    if csv_path.is_file():
+        t, X, lab = read_pose_track_csv(csv_path, units=munits, labels=labels)
+        tracks.append(MotionTrack("planned motion", "planned", t, X, lab))
+        files.append(file_entry("planned trajectory", csv_path))
+    else:
+        try:
+            tracks.append(_targets_track(doc, k, labels))
+        except (KeyError, TypeError) as exc:
+            raise InputFormatError(f"{p}: missing or bad field {exc}") from None
+    rpath = p.with_name("replay.csv")
+    if rpath.is_file():
+        t, X, lab = read_pose_track_csv(rpath, units=munits, labels=labels)
+        note = ""
+        vpath = p.with_name("replay.json")
+        if vpath.is_file():
+            verdict = _read_json(vpath)
+            if isinstance(verdict, dict):
+                note = str(verdict.get("verdict") or verdict.get("summary") or "")
+            files.append(file_entry("replay verdict", vpath))
+        tracks.append(MotionTrack("simulated execution", "executed", t, X, lab, note=note))
+        files.append(file_entry("executed trajectory", rpath))
+    return tracks, files
