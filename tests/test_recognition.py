@@ -307,7 +307,7 @@ def test_near_signatures_separate_every_contact_state():
 
 def test_meet_of_a_corner_passing_a_corner_is_vertex_vertex():
     from apo.contact import ContactElement, ContactKind
-    from apo.recognition import _meet_elements
+    from apo.recognition import meet_elements
     from apo.shapes import t_peg, u_block
 
     peg, block = t_peg(), u_block()
@@ -320,10 +320,10 @@ def test_meet_of_a_corner_passing_a_corner_is_vertex_vertex():
     ve = ContactElement(ContactKind.VE, ("v", gv), ("e", ee), p, n)
     ev_ = ContactElement(ContactKind.EV, ("e", ge), ("v", ev), p, n)
     far = ContactElement(ContactKind.VE, ("v", gv), ("e", other_e), p, n)
-    meet = _meet_elements(peg, block, [ve], [ev_])
+    meet = meet_elements(peg, block, [ve], [ev_])
     assert [e.key for e in meet] == [("VV", ("v", gv), ("v", ev))]
     # No meet when the edge does not end at the vertex: plain union.
-    union = _meet_elements(peg, block, [far], [ev_])
+    union = meet_elements(peg, block, [far], [ev_])
     assert sorted(e.key for e in union) == sorted([far.key, ev_.key])
 
 

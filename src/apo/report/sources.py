@@ -10,7 +10,6 @@ observed poses to :func:`frames_from_recognition`; ``apo report task.json`` read
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError, InputFormatError
+from apo.outputs import sha256_file
 from apo.report.html import FrameTrack
 
 if TYPE_CHECKING:
@@ -49,19 +49,25 @@ def frames_from_recognition(
     ----------
     rec : Recognition
     X_observed : array_like, shape (N, 4, 4), metres, optional
-        The observed poses the recognition ran on.
+        The observed poses (default: ``rec.X_observed``).
     X_corrected : array_like, shape (N, 4, 4), metres, optional
-        The corrected poses (default: ``rec.X_corrected`` where the recognition keeps them).
+        The corrected poses (default: ``rec.X_corrected``; observed where not converged).
     """
     if X_corrected is None:
-        X_corrected = getattr(rec, "X_corrected", None)
+        X_corrected = rec.X_corrected
     if X_observed is None:
-        X_observed = getattr(rec, "X_observed", None)
+        X_observed = rec.X_observed
+    n = len(rec.state_of_frame)
+
+    def poses(X: npt.ArrayLike | None) -> npt.NDArray[np.float64] | None:
+        a = None if X is None else np.asarray(X, dtype=np.float64)
+        return a if a is not None and a.shape == (n, 4, 4) else None  # (0, 4, 4): not kept
+
     return FrameTrack(
         times=np.asarray(rec.times, dtype=np.float64),
         state_ids=list(rec.state_of_frame),
-        X_observed=None if X_observed is None else np.asarray(X_observed, dtype=np.float64),
-        X_corrected=None if X_corrected is None else np.asarray(X_corrected, dtype=np.float64),
+        X_observed=poses(X_observed),
+        X_corrected=poses(X_corrected),
         residual_before=np.asarray(rec.residual_before, dtype=np.float64),
         residual_after=np.asarray(rec.residual_after, dtype=np.float64),
         converged=np.asarray(rec.converged, dtype=bool),
@@ -151,15 +157,6 @@ def read_frames_csv(path: str | Path, *, units: str) -> FrameTrack:
         repaired=None if rep is None else rep != 0,
         source=p.name,
     )
-
-
-def sha256_file(path: str | Path) -> str:
-    """Return the hex SHA-256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 16), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def file_entry(

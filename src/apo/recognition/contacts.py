@@ -1,0 +1,179 @@
+"""Contacts per frame (paper 4.3.1): the contact state observed at every frame.
+
+The contact finder (``apo.contact.ContactFinder``, at the recognition threshold) is run
+batched over all frames, or once per set of near feature pairs (:func:`near_signatures`);
+frames are then labelled by their distinct observed states.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.contact import ContactState
+from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
+from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
+
+__all__ = ["Observations", "group_states", "near_signatures", "observe", "observed_states"]
+
+#: Frames per batch handed to the contact finder (and per progress update).
+CHUNK = 512
+
+
+@dataclass(frozen=True)
+class Observations:
+    """The distinct contact states observed, and which one each frame shows.
+
+    Attributes
+    ----------
+    labels : ndarray of int, shape (N,)
+        Index into ``keys`` of the state observed at each frame (order of first appearance).
+    keys : list of frozenset
+        ``ContactState.key`` of each distinct observed state.
+    states : list of ContactState
+        Each distinct state as found at its first frame.
+    """
+
+    labels: IntArray
+    keys: list[StateKey]
+    states: list[ContactState]
+
+
+def observe(
+    scene: Scene, *, memoize: bool = False, progress: Progress | None = None
+) -> Observations:
+    """Find the contact state at every frame and group the frames by distinct state."""
+    return group_states(observed_states(scene, memoize=memoize, progress=progress))
+
+
+def observed_states(
+    scene: Scene, *, memoize: bool = False, progress: Progress | None = None
+) -> list[ContactState]:
+    """Contact state at every frame of ``scene.X`` (threshold ``scene.theta``).
+
+    With ``memoize``, frames are labelled by their near feature pairs (vectorised) and the
+    contact finder runs once per label, at the label's first frame.
+    """
+    X, n = scene.X, scene.n
+    if memoize:
+        labels = near_signatures(
+            scene.grasped, scene.environment, X, scene.theta, progress=progress
+        )
+        _uniq, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+        found = scene.finder.find_batch(X[first])  # one batched search over the labels
+        return [found[int(j)] for j in inverse.ravel()]
+    states: list[ContactState] = []
+    for a in range(0, n, CHUNK):
+        states.extend(scene.finder.find_batch(X[a : a + CHUNK]))
+        if progress is not None:
+            progress(min(a + CHUNK, n), n)
+    return states
+
+
+def group_states(states: Sequence[ContactState]) -> Observations:
+    """Label each state by its key, in order of first appearance."""
+    index: dict[StateKey, int] = {}
+    labels = np.empty(len(states), dtype=np.int64)
+    first: list[ContactState] = []
+    for i, s in enumerate(states):
+        k = index.setdefault(s.key, len(index))
+        if k == len(first):
+            first.append(s)
+        labels[i] = k
+    return Observations(labels, list(index), first)
+
+
+def _near_faces(poly: Polyhedron, P: FloatArray, threshold: float) -> BoolArray:
+    """(m, V, F) mask: point ``P[i, v]`` within ``threshold`` of face f of ``poly``."""
+    m, nv = P.shape[:2]
+    flat = P.reshape(-1, 3)
+    heights = flat @ poly.face_normals.T - poly.face_offsets  # (m * V, F)
+    out = np.zeros((m * nv, len(poly.faces)), dtype=bool)
+    for f in range(len(poly.faces)):
+        idx = np.flatnonzero(np.abs(heights[:, f]) <= threshold)
+        if len(idx):
+            out[idx, f] = point_face_distance(poly, f, flat[idx])[0] <= threshold
+    return out.reshape(m, nv, -1)
+
+
+def near_signatures(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X_EG_seq: npt.ArrayLike,
+    threshold: float,
+    *,
+    chunk: int = 256,
+    progress: Progress | None = None,
+) -> IntArray:
+    """Label frames by the set of feature pairs within ``threshold``, vectorised over frames.
+
+    Two frames get the same label iff the same (vertex of G, face of E), (face of G, vertex
+    of E) and (edge of G, edge of E) pairs are within ``threshold``; vertex-edge and
+    vertex-vertex proximity is implied by the edge pairs. The contact state found by
+    ``apo.contact.ContactFinder`` is determined by these pairs up to the angular tolerances
+    of its cone tests, so :func:`recognize_frames` runs the finder once per label.
+
+    Parameters
+    ----------
+    grasped, environment : Polyhedron
+    X_EG_seq : array_like, shape (N, 4, 4)
+    threshold : float
+        Metres.
+    chunk : int
+        Frames per vectorised block.
+    progress : callable, optional
+        Called as ``progress(done, total)`` after each block.
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        Labels 0, 1, ... in order of first appearance.
+    """
+    X = np.asarray(X_EG_seq, dtype=np.float64)
+    G, E = grasped, environment
+    n = X.shape[0]
+    ga, gb = G.vertices[G.edges[:, 0]], G.vertices[G.edges[:, 1]]
+    ea, eb = E.vertices[E.edges[:, 0]], E.vertices[E.edges[:, 1]]
+    # Bounding spheres of E's edges, for pruning the edge pairs.
+    e_mid, e_rad = 0.5 * (ea + eb), 0.5 * np.linalg.norm(eb - ea, axis=1)
+    g_mid0, g_rad = 0.5 * (ga + gb), 0.5 * np.linalg.norm(gb - ga, axis=1)
+    rows: list[npt.NDArray[np.bool_]] = []
+    for a in range(0, n, chunk):
+        Xc = X[a : a + chunk]
+        m = Xc.shape[0]
+        R, t = Xc[:, :3, :3], Xc[:, :3, 3]
+        PG = np.einsum("nij,vj->nvi", R, G.vertices) + t[:, None, :]  # G's vertices in E
+        PE = np.einsum("nji,vnj->nvi", R, E.vertices[:, None, :] - t[None, :, :])
+        vf = _near_faces(E, PG, threshold)
+        fv = _near_faces(G, PE, threshold)
+        g_mid = np.einsum("nij,ej->nei", R, g_mid0) + t[:, None, :]
+        gap = np.linalg.norm(g_mid[:, :, None, :] - e_mid[None, None], axis=3)
+        cand = gap <= (g_rad[None, :, None] + e_rad[None, None, :] + threshold)
+        ee = np.zeros_like(cand)
+        fi, gi, ei = np.nonzero(cand)
+        if len(fi):
+            A0 = np.einsum("kij,kj->ki", R[fi], ga[gi]) + t[fi]
+            A1 = np.einsum("kij,kj->ki", R[fi], gb[gi]) + t[fi]
+            d = segment_segment_closest(A0, A1, ea[ei], eb[ei]).distance
+            ee[fi, gi, ei] = d <= threshold
+        rows.append(np.concatenate([vf.reshape(m, -1), fv.reshape(m, -1), ee.reshape(m, -1)], 1))
+        if progress is not None:
+            progress(a + m, n)
+    bits = np.concatenate(rows, axis=0)
+    _, first, labels = np.unique(
+        np.packbits(bits, axis=1), axis=0, return_index=True, return_inverse=True
+    )
+    # Relabel in order of first appearance.
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    out: IntArray = rank[labels.ravel()].astype(np.int64)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Viterbi over candidate states
+# --------------------------------------------------------------------------------------------

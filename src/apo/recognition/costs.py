@@ -1,0 +1,88 @@
+"""The cost of every candidate state at every frame (``docs/recognition.md``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from apo.contact import ContactState
+from apo.recognition.bridges import Bridge
+from apo.recognition.distances import DistanceCache
+from apo.recognition.types import (
+    CandidateState,
+    FloatArray,
+    IntArray,
+    SegmentationCosts,
+    StateKey,
+)
+
+__all__ = ["candidate_costs", "emission_costs"]
+
+
+def emission_costs(
+    dists: DistanceCache,
+    keys: Sequence[StateKey],
+    touching: Sequence[frozenset[tuple[tuple[str, int], tuple[str, int]]]],
+    obs: IntArray,
+    w: SegmentationCosts,
+) -> FloatArray:
+    """Cost of every candidate at every frame (``docs/recognition.md``), shape (N, K)."""
+    n = len(obs)
+    ukeys = sorted({e for key in keys for e in key})
+    emission = np.zeros((n, len(keys)))
+    if not ukeys:
+        return emission
+    upos = {e: u for u, e in enumerate(ukeys)}
+    dist = dists.get(ukeys)
+    # Claimed elements: the correction residual before correction, max_i |f_i| (paper
+    # 4.3.1), of the candidate's elements at the observed pose.
+    d2 = dist**2
+    member = np.zeros((len(ukeys), len(keys)))
+    for k, key in enumerate(keys):
+        cols = [upos[e] for e in key]
+        member[cols, k] = 1.0
+        if cols:
+            emission[:, k] = w.claim * d2[:, cols].max(axis=1)
+    # Observed elements the candidate leaves out: evidence against it. An element whose
+    # feature pair touches in the candidate (e.g. a vertex on an edge when the vertex
+    # touches the edge's end vertex) is not left out.
+    cover = member.copy()
+    by_pair: dict[tuple[tuple[str, int], tuple[str, int]], list[int]] = {}
+    for u, (_kind, gf, ef) in enumerate(ukeys):
+        by_pair.setdefault((gf, ef), []).append(u)
+    for k, pairs in enumerate(touching):
+        rows = [u for pair in pairs for u in by_pair.get(pair, ())]
+        cover[rows, k] = 1.0
+    k_obs = int(obs.max()) + 1
+    seen = member[:, :k_obs][:, obs].T  # (n, U): element observed at frame t
+    missed = w.miss * seen * np.clip(1.0 - dist, 0.0, 1.0) ** 2
+    emission += missed @ (1.0 - cover)
+    return emission
+
+
+def candidate_costs(
+    dists: DistanceCache,
+    keys: Sequence[StateKey],
+    states: Sequence[ContactState],
+    candidates: Sequence[CandidateState | None],
+    bridges: Sequence[Bridge],
+    obs: IntArray,
+    w: SegmentationCosts,
+) -> FloatArray:
+    """Cost of every analysed candidate at every frame, shape (N, K).
+
+    :func:`emission_costs` with each candidate's touching set, plus: a bridging state costs
+    no more at its two boundary frames than the observed state it joins there (it happens
+    between them and holds that state's contacts too); a candidate whose correction
+    converged at no frame costs ``fail`` more per frame; one not analysed is excluded.
+    """
+    emission = emission_costs(dists, keys, [s.touching for s in states], obs, w)
+    k_obs = len(keys) - len(bridges)
+    for b, (_cand, (f1, f2), (k1, k2)) in enumerate(bridges, start=k_obs):
+        emission[f1, b] = min(emission[f1, b], emission[f1, k1])
+        emission[f2, b] = min(emission[f2, b], emission[f2, k2])
+    unusable = np.array([c is None for c in candidates])
+    failed = np.array([c is not None and not c.converged for c in candidates])
+    out: FloatArray = emission + w.fail * failed[None, :] + np.where(unusable, np.inf, 0.0)[None, :]
+    return out

@@ -1,0 +1,291 @@
+"""The recognition pipeline: poses -> contact states -> task model (paper section 4.3).
+
+:func:`recognize_frames` runs the stages of ``docs/recognition.md`` in order:
+
+1. contacts per frame (:mod:`apo.recognition.contacts`);
+2. the cost of every observed state at every frame (:mod:`apo.recognition.costs`);
+3. a first segmentation without the direct-transition test shortlists the states worth
+   analysing (:func:`apo.recognition.decoding.viterbi_uniform`);
+4. each needed state is analysed once, with the direct-transition tests and bridging
+   states (:mod:`apo.recognition.analysis`);
+5. segmentation with repair: a Viterbi pass over feasible sequences only
+   (:func:`apo.recognition.decoding.constrained_path`);
+6. every frame's pose corrected under its chosen state (:mod:`apo.recognition.correction`);
+7. the task: states, transitions, rejected runs (:mod:`apo.recognition.build`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.contact import ContactFinder
+from apo.geometry import Polyhedron
+from apo.recognition.analysis import Analysis, analyse_needed
+from apo.recognition.build import build_states, build_transitions, rejected_runs
+from apo.recognition.candidates import canonical_ids
+from apo.recognition.contacts import Observations, observe
+from apo.recognition.correction import Corrected, correct_by_label
+from apo.recognition.costs import candidate_costs, emission_costs
+from apo.recognition.decoding import constrained_path, viterbi_uniform
+from apo.recognition.distances import DistanceCache
+from apo.recognition.inputs import check_scale, check_sequence, default_threshold
+from apo.recognition.types import (
+    FloatArray,
+    IntArray,
+    Progress,
+    Recognition,
+    Scene,
+    SegmentationCosts,
+)
+from apo.task import ModelRef, TaskModel
+
+__all__ = ["recognize", "recognize_frames"]
+
+T = TypeVar("T")
+
+
+def recognize(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    times: npt.ArrayLike | None,
+    X_EG_seq: npt.ArrayLike,
+    *,
+    threshold: float | None = None,
+    progress: Progress | None = None,
+    units: str = "mm",
+    models: tuple[ModelRef, ModelRef] | None = None,
+    source: str = "",
+    costs: SegmentationCosts | None = None,
+    memoize: bool = False,
+) -> TaskModel:
+    """Recognise a demonstration into a :class:`~apo.task.TaskModel`.
+
+    Parameters
+    ----------
+    grasped, environment : Polyhedron
+        Models G (moving) and E (fixed), metres, own frames.
+    times : array_like, shape (N,), or None
+        Time stamps, seconds (None: frame indices).
+    X_EG_seq : array_like, shape (N, 4, 4)
+        Observed poses of G in E, metres.
+    threshold : float, optional
+        Contact distance threshold, metres; default :func:`default_threshold` (scale-aware).
+    progress : callable, optional
+        Called as ``progress(done, total)`` while contacts are found.
+    units : str
+        Length unit of the task's JSON form.
+    models : (ModelRef, ModelRef), optional
+        Model files to record; default: the model names without a hash.
+    source : str
+        Name of the demonstration (e.g. its file name).
+    costs : SegmentationCosts, optional
+        Weights of the segmentation (``docs/recognition.md``).
+    memoize : bool
+        Run the contact finder once per set of near feature pairs (:func:`near_signatures`)
+        instead of at every frame. Off by default: the finder's batched search over all
+        frames (:meth:`apo.contact.ContactFinder.find_batch`) is now the faster of the two.
+
+    Returns
+    -------
+    TaskModel
+
+    Raises
+    ------
+    InputFormatError
+        Empty sequence, wrong shapes, NaN or non-rigid poses (the frame is named).
+
+    See Also
+    --------
+    recognize_frames : the same, with per-frame diagnostics.
+    """
+    return recognize_frames(
+        grasped,
+        environment,
+        times,
+        X_EG_seq,
+        threshold=threshold,
+        progress=progress,
+        units=units,
+        models=models,
+        source=source,
+        costs=costs,
+        memoize=memoize,
+    ).task
+
+
+def recognize_frames(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    times: npt.ArrayLike | None,
+    X_EG_seq: npt.ArrayLike,
+    *,
+    threshold: float | None = None,
+    progress: Progress | None = None,
+    units: str = "mm",
+    models: tuple[ModelRef, ModelRef] | None = None,
+    source: str = "",
+    costs: SegmentationCosts | None = None,
+    memoize: bool = False,
+) -> Recognition:
+    """Recognise a demonstration; return the task model and per-frame diagnostics.
+
+    Parameters are those of :func:`recognize`.
+
+    Returns
+    -------
+    Recognition
+    """
+    tm: dict[str, float] = {}
+    t0 = time.perf_counter()
+    name = source or "demonstration"
+    t, X = check_sequence(times, X_EG_seq, source=name)  # type: ignore[arg-type]
+    check_scale(grasped, environment, X, name)
+    scene = make_scene(grasped, environment, X, threshold, costs or SegmentationCosts())
+    observed = observe(scene, memoize=memoize, progress=progress)
+    tm["contacts"] = time.perf_counter() - t0
+    dists = DistanceCache(grasped, environment, X, scene.theta)
+    first = [s.touching for s in observed.states]
+    emission0 = _timed(
+        tm,
+        "segmentation",
+        emission_costs,
+        dists,
+        observed.keys,
+        first,
+        observed.labels,
+        scene.costs,
+    )
+    path0 = _timed(tm, "segmentation", viterbi_uniform, emission0, scene.costs.switch)
+    an = _timed(tm, "analysis", analyse_needed, scene, observed, emission0, path0)
+    path, obs_c, emission = _timed(tm, "segmentation", segment, scene, an, dists, observed)
+    chosen = an.states(observed)
+    corrected = _timed(
+        tm, "correction", correct_by_label, grasped, environment, X, chosen, path, scene.theta
+    )
+    t4 = time.perf_counter()
+    task = build_task(
+        scene, t, path, obs_c, corrected, an, emission, units=units, models=models, source=source
+    )
+    tm["task"] = time.perf_counter() - t4
+    tm["total"] = time.perf_counter() - t0
+    return _result(task, observed, an, path, obs_c, corrected, t, emission, X, tm)
+
+
+def _timed(tm: dict[str, float], stage: str, f: Callable[..., T], *args: object) -> T:
+    """Call ``f(*args)``, adding its wall time to ``tm[stage]``."""
+    t0 = time.perf_counter()
+    out = f(*args)
+    tm[stage] = tm.get(stage, 0.0) + time.perf_counter() - t0
+    return out
+
+
+def make_scene(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X: FloatArray,
+    threshold: float | None,
+    costs: SegmentationCosts,
+) -> Scene:
+    """Make the scene of a recognition: models, poses, the two contact finders, the costs.
+
+    At corrected poses contacts hold exactly: the contact finder's own (tight) default
+    threshold tells which feature pairs really touch there.
+    """
+    if threshold is None:
+        threshold = default_threshold(grasped, environment)
+    finder = ContactFinder(grasped, environment, threshold=threshold)
+    exact = ContactFinder(grasped, environment)
+    return Scene(grasped, environment, X, finder, exact, costs)
+
+
+def segment(
+    scene: Scene, an: Analysis, dists: DistanceCache, observed: Observations
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """Constrained segmentation over the analysed candidates.
+
+    Returns the chosen candidate of each frame and the observed one, both with candidates
+    of the same closure identified (:func:`~apo.recognition.candidates.canonical_ids`),
+    and the cost array ``(N, K)``.
+    """
+    w = scene.costs
+    states = an.states(observed)
+    emission = candidate_costs(
+        dists, an.keys, states, an.candidates, an.bridges, observed.labels, w
+    )
+    path = constrained_path(emission, an.feasible, w.switch, w.jump)
+    canon = canonical_ids(an.candidates)
+    return canon[path], canon[observed.labels], emission
+
+
+def build_task(
+    scene: Scene,
+    times: FloatArray,
+    path: IntArray,
+    obs_c: IntArray,
+    corrected: Corrected,
+    an: Analysis,
+    emission: FloatArray,
+    *,
+    units: str,
+    models: tuple[ModelRef, ModelRef] | None,
+    source: str,
+) -> TaskModel:
+    """Build the task model: states, transitions and rejected runs of the chosen path."""
+    runs, ids, states = build_states(times, path, obs_c, corrected, an.candidates)
+    transitions = build_transitions(runs, ids, path, an.candidates, an.feasible)
+    rejected = rejected_runs(
+        obs_c, path, runs, ids, an.keys, an.candidates, an.feasible, emission, scene.costs
+    )
+    G, E = scene.grasped, scene.environment
+    g_ref, e_ref = models or (ModelRef(G.name, None, G.name), ModelRef(E.name, None, E.name))
+    return TaskModel(
+        units=units,
+        grasped=g_ref,
+        environment=e_ref,
+        states=tuple(states),
+        transitions=tuple(transitions),
+        rejected=tuple(rejected),
+        n_frames=scene.n,
+        source=source,
+        threshold=scene.theta,
+    )
+
+
+def _result(
+    task: TaskModel,
+    observed: Observations,
+    an: Analysis,
+    path: IntArray,
+    obs_c: IntArray,
+    corrected: Corrected,
+    times: FloatArray,
+    emission: FloatArray,
+    X: FloatArray,
+    tm: dict[str, float],
+) -> Recognition:
+    """Gather the per-frame diagnostics."""
+    Xc, res_before, res_after, conv = corrected
+    state_of_frame = [s.id for s in task.states for _ in range(s.frames[0], s.frames[1] + 1)]
+    return Recognition(
+        task=task,
+        state_of_frame=state_of_frame,
+        observed=observed.labels,
+        assigned=path,
+        residual_before=res_before,
+        residual_after=res_after,
+        converged=conv,
+        repaired=obs_c != path,
+        candidates=an.candidates,
+        keys=an.keys,
+        feasible=an.feasible,
+        times=times,
+        emission=emission,
+        timings=tm,
+        X_observed=X,
+        X_corrected=np.where(conv[:, None, None], Xc, X),
+    )

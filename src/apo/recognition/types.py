@@ -1,0 +1,206 @@
+"""Data passed between the stages of recognition (``docs/recognition.md``).
+
+Everything is in metres, in the environment frame E; poses ``X_EG`` are 4x4 matrices of
+the grasped object G in E.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from apo.contact import ContactFinder, ContactState
+    from apo.geometry import Polyhedron
+    from apo.task import TaskModel
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+ElementKey = tuple[str, tuple[str, int], tuple[str, int]]
+"""``ContactElement.key``: (kind, grasped feature, environment feature)."""
+StateKey = frozenset[ElementKey]
+"""``ContactState.key``: the set of its element keys."""
+FeaturePair = tuple[tuple[str, int], tuple[str, int]]
+Progress = Callable[[int, int], None]
+Six = tuple[int, int, int, int, int, int]
+
+
+@dataclass(frozen=True)
+class SegmentationCosts:
+    """Weights of the segmentation cost (``docs/recognition.md``), dimensionless.
+
+    Distances are measured in units of the contact threshold ``theta``.
+
+    Attributes
+    ----------
+    claim : float
+        Times ``(max_i d_i / theta)^2`` over the claimed elements, ``d_i`` their distances
+        at the observed pose: the residual the pose correction has to remove.
+    miss : float
+        Per observed element the state leaves out, times ``(1 - d / theta)^2``: strong
+        evidence when the features were nearly touching, none at the threshold.
+    switch : float
+        Per state change.
+    fail : float
+        Per frame assigned to a state whose pose correction converged at no frame.
+    jump : float
+        Per transition that fails the direct-transition test; taken only when every
+        feasible sequence explains the frames worse by more than this (it is then reported
+        with ``direct = False``).
+    window : int
+        Two candidates whose observed frames are never within ``window`` frames of each
+        other are not tested for a direct transition (treated as not direct); this keeps
+        the number of tests near linear in the number of candidates.
+    reach : float
+        A bridging candidate (a state between two observed ones, observed at no frame) is
+        kept only if its elements are within ``reach * theta`` at the observed pose it is
+        corrected from, and the correction moves no vertex more than twice that distance
+        plus ``theta`` (it did not converge to a distant solution).
+    """
+
+    claim: float = 1.0
+    miss: float = 4.0
+    switch: float = 1.5
+    fail: float = 6.0
+    jump: float = 25.0
+    window: int = 10
+    reach: float = 3.0
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What every stage needs: the two models, the observed poses and the thresholds.
+
+    Attributes
+    ----------
+    grasped, environment : Polyhedron
+        Models G (moving) and E (fixed), metres, own frames.
+    X : ndarray, shape (N, 4, 4)
+        Observed poses of G in E, metres.
+    finder : ContactFinder
+        Contact finder at the recognition threshold ``theta``.
+    exact : ContactFinder
+        Contact finder at its own tight default threshold: which pairs really touch at a
+        corrected pose.
+    costs : SegmentationCosts
+    """
+
+    grasped: Polyhedron
+    environment: Polyhedron
+    X: FloatArray
+    finder: ContactFinder
+    exact: ContactFinder
+    costs: SegmentationCosts
+
+    @property
+    def theta(self) -> float:
+        """The recognition threshold (metres)."""
+        return float(self.finder.threshold)
+
+    @property
+    def n(self) -> int:
+        """Number of frames."""
+        return int(self.X.shape[0])
+
+
+@dataclass(frozen=True)
+class CandidateState:
+    """A distinct observed contact state, analysed once.
+
+    Attributes
+    ----------
+    key : frozenset
+        ``ContactState.key`` (element kinds and feature ids).
+    state : ContactState
+        The contact state at the representative pose (or as observed, if no frame converged).
+    dof : Any
+        ``apo.dof.DofResult`` of ``state``.
+    frame : int
+        Representative frame (best converged correction; else the first observed frame).
+    X_EG : ndarray, shape (4, 4)
+        Corrected pose at ``frame`` (metres).
+    converged : bool
+        True if the correction converged at ``frame``.
+    n_observed : int
+        Number of frames at which it was observed.
+    """
+
+    key: StateKey
+    state: ContactState
+    dof: Any
+    frame: int
+    X_EG: FloatArray
+    converged: bool
+    n_observed: int
+
+
+@dataclass(frozen=True)
+class Recognition:
+    """Result of :func:`apo.recognition.recognize_frames`: the task and per-frame diagnostics.
+
+    Attributes
+    ----------
+    task : TaskModel
+    state_of_frame : list of str
+        Task state id of every frame.
+    observed : ndarray of int, shape (N,)
+        Index into ``keys`` of the state observed at each frame.
+    assigned : ndarray of int, shape (N,)
+        Index into ``keys`` of the state chosen at each frame.
+    residual_before, residual_after : ndarray, shape (N,)
+        Largest contact distance (metres) of the chosen state's contacts before and after
+        the pose correction of each frame.
+    converged : ndarray of bool, shape (N,)
+        True where the correction converged.
+    repaired : ndarray of bool, shape (N,)
+        True where the chosen state differs from the observed one.
+    candidates : list of CandidateState or None
+        The analysed candidates (None: observed noise, not analysed), aligned with ``keys``.
+    keys : list of frozenset
+        Contact-state keys of the observed states, then of the bridging states.
+    feasible : ndarray of bool, shape (K, K)
+        Direct-transition test between candidates (diagonal True; False where untested).
+    times : ndarray, shape (N,)
+    emission : ndarray, shape (N, K)
+        Cost of each candidate at each frame (``docs/recognition.md``).
+    timings : dict
+        Seconds spent in each stage.
+    X_observed : ndarray, shape (N, 4, 4)
+        The observed poses of G in E (metres), as given.
+    X_corrected : ndarray, shape (N, 4, 4)
+        Each frame's pose corrected under its chosen state (metres); the observed pose
+        where the correction did not converge.
+    """
+
+    task: TaskModel
+    state_of_frame: list[str]
+    observed: IntArray
+    assigned: IntArray
+    residual_before: FloatArray
+    residual_after: FloatArray
+    converged: BoolArray
+    repaired: BoolArray
+    candidates: list[CandidateState | None]
+    keys: list[StateKey]
+    feasible: BoolArray
+    times: FloatArray
+    emission: FloatArray
+    timings: dict[str, float] = field(default_factory=dict)
+    X_observed: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    X_corrected: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+
+    @property
+    def flags(self) -> list[list[str]]:
+        """Per-frame flags: ``"correction_failed"``, ``"repaired"``."""
+        out: list[list[str]] = []
+        for c, r in zip(self.converged, self.repaired, strict=True):
+            f = [] if c else ["correction_failed"]
+            if r:
+                f.append("repaired")
+            out.append(f)
+        return out
