@@ -187,11 +187,11 @@ def write_outputs(
     plot: bool = True,
     title: str | None = None,
     worker: PlotWorker | None = None,
-    report: Callable[[], str] | None = None,
+    report: Callable[[Path], object] | None = None,
 ) -> dict[str, Path]:
     """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) to ``out_dir`` atomically.
 
-    ``report`` returns the text of ``report.html`` (``apo.report.sources.recognition_report``).
+    ``report`` writes ``report.html`` to the path it is given (:func:`report_maker`).
 
     Each file is written to a temporary file in ``out_dir`` and renamed into place, so an
     interrupted run never leaves a half-written file. Returns the paths written.
@@ -223,23 +223,25 @@ def write_outputs(
     if report is not None:
         html = out_dir / "report.html"
         with atomic_path(html) as tmp:
-            tmp.write_text(report(), encoding="utf-8")
+            report(tmp)
         written["report"] = html
     return written
 
 
 def report_maker(
     rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
-) -> Callable[[], str]:
-    """Return a callable that renders ``report.html`` of ``rec`` (inputs: files to hash)."""
+) -> Callable[[Path], int]:
+    """Return a callable that writes ``report.html`` of ``rec`` to a path (inputs: to hash)."""
 
-    def make() -> str:
+    def write(path: Path) -> int:
+        from apo.report.html import write_report
         from apo.report.sources import file_entry, recognition_report
 
         files = [file_entry("demonstration", p) for p in inputs if p.is_file()]
-        return recognition_report(rec, grasped=G, environment=E, X_observed=X_observed, files=files)
+        doc = recognition_report(rec, grasped=G, environment=E, X_observed=X_observed, files=files)
+        return write_report(path, doc)
 
-    return make
+    return write
 
 
 def frames_csv(rec: Recognition) -> str:

@@ -260,21 +260,21 @@ def recognition_report(
     environment: Polyhedron | None,
     X_observed: npt.ArrayLike | None = None,
     files: Sequence[Mapping[str, Any]] = (),
-) -> str:
-    """Return the HTML report of a recognition (what ``apo analyze`` writes as report.html).
+) -> dict[str, Any]:
+    """Return the report document of a recognition (``apo analyze`` writes it as report.html).
 
-    Costs a :func:`apo.task.task_to_dict`, the packing of the per-frame arrays and the
-    inlining of plotly.js: a few tens of milliseconds (``docs/report.md``).
+    Write it with :func:`apo.report.html.write_report`. Costs a
+    :func:`apo.task.task_to_dict` and the packing of the per-frame arrays: a few
+    milliseconds (``docs/report.md``, ``benchmarks/report.py``).
     """
-    from apo.report.html import report_data, report_html
+    from apo.report.html import report_data
     from apo.task import task_to_dict
 
     doc = task_to_dict(rec.task)
-    data = report_data(
+    return report_data(
         doc,
         grasped=grasped,
         environment=environment,
         frames=frames_from_recognition(rec, X_observed),
         inputs=inputs_summary(doc, files),
     )
-    return report_html(data)
