@@ -37,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError
+from apo.typing import BoolArray, FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -56,8 +57,6 @@ __all__ = [
     "unpack_array",
     "write_report",
 ]
-
-FloatArray = npt.NDArray[np.float64]
 
 MAX_REPLAY_FRAMES = 6000
 """Frames of the replay at most; longer demonstrations are decimated (state ends kept)."""
@@ -95,8 +94,8 @@ class FrameTrack:
     X_corrected: FloatArray | None = None
     residual_before: FloatArray | None = None
     residual_after: FloatArray | None = None
-    converged: npt.NDArray[np.bool_] | None = None
-    repaired: npt.NDArray[np.bool_] | None = None
+    converged: BoolArray | None = None
+    repaired: BoolArray | None = None
     source: str = "recognition"
 
 

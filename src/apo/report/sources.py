@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from apo.errors import ApoError, InputFormatError
 from apo.report.html import FrameTrack
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -59,7 +60,7 @@ def frames_from_recognition(
         X_observed = rec.X_observed
     n = len(rec.state_of_frame)
 
-    def poses(X: npt.ArrayLike | None) -> npt.NDArray[np.float64] | None:
+    def poses(X: npt.ArrayLike | None) -> FloatArray | None:
         a = None if X is None else np.asarray(X, dtype=np.float64)
         return a if a is not None and a.shape == (n, 4, 4) else None  # (0, 4, 4): not kept
 
@@ -78,7 +79,7 @@ def frames_from_recognition(
 
 def _pose_block(
     rows: list[dict[str, str]], prefix: str, unit: str, k: float, where: str
-) -> npt.NDArray[np.float64] | None:
+) -> FloatArray | None:
     """Poses from columns ``<prefix>x_<unit> ... <prefix>qz``; None if the columns are absent."""
     from apo.spatial import pose_from_position_quaternion
 
