@@ -62,7 +62,7 @@ def read_task_json(path: Path) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo report``; return the exit code."""
-    from apo.cli.analyze import atomic_path
+    from apo.outputs import atomic_file
     from apo.report.html import report_data, write_report
     from apo.report.sources import file_entry, inputs_summary, load_models, read_frames_csv
 
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         inputs=inputs_summary(doc, files),
         notes=notes,
     )
-    with atomic_path(out) as tmp:
+    with atomic_file(out) as tmp:
         size = write_report(tmp, data)
     for n in notes:
         print(f"apo report: warning: {n}", file=sys.stderr)

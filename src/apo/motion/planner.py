@@ -367,6 +367,24 @@ def _position_controlled(
     )
 
 
+def _align_rotation(
+    X: FloatArray, X_goal: FloatArray, axes: FloatArray, pivot: FloatArray
+) -> FloatArray:
+    """Turn ``X`` about ``pivot`` until the rotation left to ``X_goal`` has no part on ``axes``.
+
+    Rotations do not commute, so one step by the projected rotation vector leaves a second
+    order residue; a few fixed-point steps remove it (to 1e-12 rad).
+    """
+    for _ in range(50):
+        w = _rotvec(X, X_goal)
+        w_a = axes.T @ (axes @ w) if axes.shape[0] else np.zeros(3)
+        angle = float(np.linalg.norm(w_a))
+        if angle < 1e-13:
+            break
+        X = _rotate_about(X, w_a / angle, pivot, angle)
+    return X
+
+
 def _align_primitive(task: TaskModel, i: int, X_start: FloatArray, pp: PlanParameters) -> Primitive:
     """``align`` before critical transition ``i``: match its target pose where it constrains."""
     tr = task.transitions[i]
@@ -378,10 +396,7 @@ def _align_primitive(task: TaskModel, i: int, X_start: FloatArray, pp: PlanParam
     ref = b.X_EG[:3, 3].copy() if c is None else c
     # where the entrance point of G is now, then turn about it and move it in T only
     here = _moved(X_start, b.X_EG, ref)
-    w = _rotvec(X_start, b.X_EG)
-    w_a = Rr.T @ (Rr @ w) if Rr.shape[0] else np.zeros(3)
-    angle = float(np.linalg.norm(w_a))
-    X = X_start if angle < _EPS else _rotate_about(X_start, w_a / angle, here, angle)
+    X = _align_rotation(X_start, b.X_EG, Rr, here)
     shift = T.T @ (T @ (ref - here)) if T.shape[0] else np.zeros(3)
     X = _translate(X, shift)
     pts = np.array([e.point for e in b.elements]) if b.elements else np.zeros((1, 3))

@@ -375,18 +375,31 @@ def plotly_js() -> bytes:
     )
 
 
-def _json_for_script(data: Any) -> bytes:
-    """JSON safe inside ``<script type="application/json">`` (no ``</``, no ``<!--``)."""
-    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+def _json_for_script(data: Mapping[str, Any], task_json: str | None = None) -> bytes:
+    """JSON safe inside ``<script type="application/json">`` (no ``</``, no ``<!--``).
+
+    With ``task_json`` (the text of ``task.json``, the same document as ``data["task"]``),
+    that text is spliced in as ``"task"`` instead of serialising the task a second time.
+    """
+    if task_json is None:
+        text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    else:
+        rest = json.dumps(
+            {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
+        )
+        text = rest[:-1] + ',"task":' + task_json.strip() + "}"
     text = text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
     return text.encode("utf-8")
 
 
-def report_parts(data: Mapping[str, Any], *, title: str | None = None) -> list[bytes]:
+def report_parts(
+    data: Mapping[str, Any], *, title: str | None = None, task_json: str | None = None
+) -> list[bytes]:
     """Return the page of a :func:`report_data` document as a list of UTF-8 byte strings.
 
     Joined, they are the HTML file; :func:`write_report` writes them without joining (the
-    plotly.js bundle, most of the page, is never decoded or copied).
+    plotly.js bundle, most of the page, is never decoded or copied). ``task_json``: the
+    text of ``task.json`` for ``data["task"]``, embedded as is (:func:`_json_for_script`).
     """
     src = str(data["task"].get("source") or "demonstration")
     text = title or f"apo report: {src}"  # escaped by hand: importing html costs 15 ms
@@ -395,7 +408,7 @@ def report_parts(data: Mapping[str, Any], *, title: str | None = None) -> list[b
         b"__APO_TITLE__": text.encode("utf-8"),
         b"__APO_CSS__": _asset("report.css"),
         b"__APO_PLOTLY__": plotly_js(),
-        b"__APO_DATA__": _json_for_script(data),
+        b"__APO_DATA__": _json_for_script(data, task_json),
         b"__APO_JS__": _asset("report.js"),
     }
     out: list[bytes] = []
@@ -414,13 +427,19 @@ def report_html(data: Mapping[str, Any], *, title: str | None = None) -> str:
     return b"".join(report_parts(data, title=title)).decode("utf-8")
 
 
-def write_report(path: str | Path, data: Mapping[str, Any], *, title: str | None = None) -> int:
+def write_report(
+    path: str | Path,
+    data: Mapping[str, Any],
+    *,
+    title: str | None = None,
+    task_json: str | None = None,
+) -> int:
     """Write the page of a :func:`report_data` document to ``path``; return its size in bytes.
 
-    Not atomic by itself: callers write to a temporary file and rename it
-    (``apo.cli.analyze.atomic_path``).
+    Not atomic by itself: callers write into an :class:`apo.outputs.OutputSet` or through
+    :func:`apo.outputs.atomic_file`.
     """
-    parts = report_parts(data, title=title)
+    parts = report_parts(data, title=title, task_json=task_json)
     with open(path, "wb") as fh:
         fh.writelines(parts)
     return sum(len(b) for b in parts)

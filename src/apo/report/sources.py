@@ -10,7 +10,6 @@ observed poses to :func:`frames_from_recognition`; ``apo report task.json`` read
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError, InputFormatError
+from apo.outputs import sha256_file
 from apo.report.html import FrameTrack
 from apo.typing import FloatArray
 
@@ -160,15 +160,6 @@ def read_frames_csv(path: str | Path, *, units: str) -> FrameTrack:
     )
 
 
-def sha256_file(path: str | Path) -> str:
-    """Return the hex SHA-256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 16), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def file_entry(
     role: str, path: str | Path, *, expected_sha256: str | None = None
 ) -> dict[str, Any]:
@@ -261,17 +252,19 @@ def recognition_report(
     environment: Polyhedron | None,
     X_observed: npt.ArrayLike | None = None,
     files: Sequence[Mapping[str, Any]] = (),
+    doc: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Return the report document of a recognition (``apo analyze`` writes it as report.html).
 
-    Write it with :func:`apo.report.html.write_report`. Costs a
-    :func:`apo.task.task_to_dict` and the packing of the per-frame arrays: a few
+    Write it with :func:`apo.report.html.write_report`. ``doc`` is ``task_to_dict(rec.task)``
+    where the caller has it already. Costs the packing of the per-frame arrays: a few
     milliseconds (``docs/report.md``, ``benchmarks/report.py``).
     """
     from apo.report.html import report_data
     from apo.task import task_to_dict
 
-    doc = task_to_dict(rec.task)
+    if doc is None:
+        doc = task_to_dict(rec.task)
     return report_data(
         doc,
         grasped=grasped,
