@@ -16,6 +16,7 @@ are recognised instead of noisy copies of the truth.
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -73,6 +74,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print task.json instead of the table")
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
     p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
+    p.add_argument(
+        "--no-replay",
+        action="store_true",
+        help="do not end with the replay of the task model in MuJoCo (apo replay)",
+    )
     p.add_argument(
         "--from-frames",
         action="store_true",
@@ -176,8 +182,6 @@ def _resolution(text: str) -> tuple[int, int]:
 
 def _demonstration_from_frames(args: argparse.Namespace, outs: OutputSet) -> DemoInput:
     """Render the example's true poses, track the frames, return the tracked poses."""
-    import sys
-
     for flag, v in (("--noise-mm", args.noise_mm), ("--noise-deg", args.noise_deg)):
         if v is not None:
             raise InputFormatError(
@@ -230,7 +234,32 @@ def run(args: argparse.Namespace) -> int:
         if worker is not None:
             worker.close()
     report(rec, written, as_json=args.json)
+    if not getattr(args, "no_replay", False):
+        replay_verdict(written, file=sys.stderr if args.json else sys.stdout)
     return 0
+
+
+def replay_verdict(written: dict[str, Path], *, file: Any) -> None:
+    """Replay the written ``task.json`` in MuJoCo (as ``apo replay``) and print the verdict.
+
+    Skipped with a note when the extra ``sim`` is not installed.
+    """
+    task = next((p for p in written.values() if Path(p).name == "task.json"), None)
+    if task is None:
+        return
+    try:
+        import mujoco  # noqa: F401
+    except ImportError:
+        print("replay skipped: MuJoCo is not installed (pip install 'apo[sim]')", file=file)
+        return
+    from apo.cli.replay import replay_file
+
+    res, _ = replay_file(Path(task))
+    print(
+        f"replay in MuJoCo (apo replay {task}): states {' '.join(res.states_reached)}; "
+        f"{res.verdict}",
+        file=file,
+    )
 
 
 def _run(

@@ -171,40 +171,49 @@ def write_replay(out: Path, res: Any, units: str) -> list[Path]:
     return [js, cs]
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``apo replay``; return 0 on success, 1 when the verdict is a failure."""
+def replay_file(task_path: Path, *, video: Any = None, **options: Any) -> tuple[Any, str]:
+    """Replay the ``task.json`` at ``task_path`` with its model files; return (result, units).
+
+    ``options`` go to :func:`apo.sim.replay.replay` (SI units).
+    """
     from apo.cli import warnings_to_stderr
     from apo.io.meshes import load_polyhedron
     from apo.io.taskfile import model_paths, read_task
     from apo.sim.replay import replay
 
-    perturb = parse_size(args.perturb, "--perturb")
-    offset = parse_size(args.environment_offset, "--environment-offset")
-    if not (math.isfinite(args.clearance) and args.clearance >= 0.05):
-        raise InputFormatError(f"--clearance must be at least 0.05 mm, got {args.clearance}")
-    task_path = Path(args.task)
     task = read_task(task_path)
     gpath, epath = model_paths(task, task_path)
     with warnings_to_stderr("apo replay"):
         G = load_polyhedron(gpath, units=task.units)
         E = load_polyhedron(epath, units=task.units)
+    if options.get("playback"):
+        options["frames"] = observed_frames(task_path, task)
+    res = replay(task, G, E, video=video, **options)
+    return res, task.units
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``apo replay``; return 0 on success, 1 when the verdict is a failure."""
+    perturb = parse_size(args.perturb, "--perturb")
+    offset = parse_size(args.environment_offset, "--environment-offset")
+    if not (math.isfinite(args.clearance) and args.clearance >= 0.05):
+        raise InputFormatError(f"--clearance must be at least 0.05 mm, got {args.clearance}")
     video = None
     if args.video:
         from apo.sim.video import Recorder
 
         video = Recorder(Path(args.video))
-    res = replay(
-        task, G, E, perturb=perturb, environment_offset=offset,
+    res, units = replay_file(
+        Path(args.task), video=video, perturb=perturb, environment_offset=offset,
         clearance=args.clearance * 1e-3, seed=args.seed, playback=args.playback,
-        frames=observed_frames(task_path, task) if args.playback else None, video=video,
     )  # fmt: skip
     if video is not None:
         video.close()
-    written = write_replay(Path(args.out), res, task.units) if args.out else []
+    written = write_replay(Path(args.out), res, units) if args.out else []
     if args.json:
-        print(json.dumps(result_dict(res, task.units), indent=2))
+        print(json.dumps(result_dict(res, units), indent=2))
     else:
-        print(report(res, task.units))
+        print(report(res, units))
         for p in written:
             print(f"wrote {p}")
     if video is not None:

@@ -42,6 +42,8 @@ __all__ = ["STALL_TIME", "PrimitiveRun", "run_playback", "run_program"]
 
 STALL_TIME = 3.0
 """Seconds a primitive may run beyond its nominal duration before it counts as jammed."""
+FREE_SPEED_FACTOR = 4.0
+"""Approaches move through free space this many times faster than the plan's speeds."""
 ROTATE_SLIDES_BY_POSITION = True
 """Execute a rotational slide by a position-controlled turn about its axis (see module doc)."""
 _CONFIRM = 10
@@ -54,6 +56,11 @@ _SETTLED = 0.01
 """Angular speed (rad/s) below which a type I rotational push-to has settled."""
 _TOUCH = 0.5
 """Contact force (N) that counts as touching when a type I push-to settles."""
+_SLOW_ZONE = 0.003
+"""Metres before the expected end of a translational push-to where it slows down (the
+environment's offset is unknown, up to a millimetre or so)."""
+_SLOW_FACTOR = 4.0
+"""Damping factor there: a 5 N push arrives at 5 mm/s instead of 20 mm/s."""
 _ANGLE_MARGIN = 0.087
 """Radians added to the angle of a position-controlled turn for its travel limit."""
 _ANGLE_TOL = 0.035
@@ -286,7 +293,8 @@ def run_primitive(
     path: _Path | _Chain = _path(X0, prim.target.X_EG, center_G, *speeds)
     guard_from = 0.0  # guarded stops apply once the via poses (folded transitions) are passed
     if kind == "approach":
-        path = _approach_path(prim, X0, center_G, speeds, up)
+        free = (FREE_SPEED_FACTOR * speeds[0], FREE_SPEED_FACTOR * speeds[1])
+        path = _approach_path(prim, X0, center_G, free, up)
     elif len(getattr(prim, "via", ())):
         path = _via_path(prim, X0, center_G, speeds)
         guard_from = sum(p.duration for p in path.legs[:-1])
@@ -324,7 +332,10 @@ def run_primitive(
     size = max(1e-3, float(np.linalg.norm(center_G)))
     while hand.time - t0 < limit:
         X_des = path.at(hand.time - t0)
-        Fc, Tc = hand.step(X_des, center_G, S_t=St, S_r=Sr, force=f_cmd, torque=t_cmd)
+        slow = 1.0
+        if kind == "push_to" and not rot and travel > expected - _SLOW_ZONE:
+            slow = _SLOW_FACTOR  # the contact is near: arrive gently
+        Fc, Tc = hand.step(X_des, center_G, S_t=St, S_r=Sr, force=f_cmd, torque=t_cmd, slow=slow)
         sample(hand)
         X = hand.pose()
         c = X[:3, :3] @ center_G + X[:3, 3]

@@ -145,6 +145,7 @@ class Hand:
         S_r: FloatArray | None = None,
         force: FloatArray | None = None,
         torque: FloatArray | None = None,
+        slow: float = 1.0,
     ) -> tuple[FloatArray, FloatArray]:
         """Apply the hybrid control law for one time step and advance the simulation.
 
@@ -158,6 +159,9 @@ class Hand:
             Projectors on the force-controlled directions / axes (none by default).
         force, torque : ndarray, shape (3,), optional
             Commanded force (N) and torque about the centre (N m), world frame.
+        slow : float
+            Factor on the damping of the force-controlled directions (> 1: slower under
+            the same force, for the last millimetres before an expected contact).
 
         Returns
         -------
@@ -175,7 +179,7 @@ class Hand:
         tc = np.zeros(3) if torque is None else torque
         e_p = c_des - c
         e_r = self._rotation_error(X_des)
-        F = St @ (fc - g.df_t * v) + (I3 - St) @ (g.k_t * e_p - g.d_t * v)
+        F = St @ (fc - slow * g.df_t * v) + (I3 - St) @ (g.k_t * e_p - g.d_t * v)
         T = Sr @ (tc - g.df_r * w) + (I3 - Sr) @ (g.k_r * e_r - g.d_r * w)
         d = self.scene.data
         com = d.xipos[self.scene.hand]  # type: ignore[attr-defined]
