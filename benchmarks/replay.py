@@ -125,6 +125,8 @@ def main() -> None:
     ap.add_argument("--scenarios", nargs="+", default=["demo", "real"])
     ap.add_argument("--clearances", nargs="+", type=float, default=list(CLEARANCES_MM))
     ap.add_argument("--modes", nargs="+", default=["skills", "playback"])
+    ap.add_argument("--output", default=str(HERE / "results" / "replay.json"))
+    ap.add_argument("--no-real-timing", action="store_true")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tasks = make_tasks(Path(tmp), args.scenarios)
@@ -139,7 +141,7 @@ def main() -> None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             rows = list(pool.map(run_trial, jobs, chunksize=4))
         total = time.perf_counter() - t0
-        real = real_wall_time(tasks)
+        real = None if args.no_real_timing else real_wall_time(tasks)
     table = summarise(rows)
     print(f"{'scenario':<9} {'clear mm':>8} {'mode':<9} {'success':>12} "
           f"{'max pen mm':>10} {'med pen mm':>10} {'sim s/wall s':>12}")  # fmt: skip
@@ -154,9 +156,9 @@ def main() -> None:
         print(f"apo replay of the real demonstration: {real['wall_s']:.2f} s wall "
               f"(success {real['success']}, {real['sim_s']} s simulated)")  # fmt: skip
     print(f"{len(rows)} replays in {total:.0f} s wall with {args.jobs} processes")
-    res_dir = HERE / "results"
-    res_dir.mkdir(exist_ok=True)
-    (res_dir / "replay.json").write_text(json.dumps({
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({
         "conditions": {
             "trials": args.trials, "perturb_max": [2.0, 2.0], "offset_max": [1.0, 1.0],
             "units": "mm, deg", "clearances_mm": args.clearances, "jobs": args.jobs,

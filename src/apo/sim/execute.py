@@ -61,6 +61,14 @@ _SLOW_ZONE = 0.003
 environment's offset is unknown, up to a millimetre or so)."""
 _SLOW_FACTOR = 4.0
 """Damping factor there: a 5 N push arrives at 5 mm/s instead of 20 mm/s."""
+SEARCH_PITCH = 0.0002
+"""Metres between the passes of the alignment search (at most twice the clearance)."""
+SEARCH_RADIUS = 0.002
+"""Metres: how far the alignment search reaches (the environment's offset is up to 1 mm)."""
+SEARCH_SPEED = 0.004
+"""Metres per second of the alignment search."""
+SEARCH_DROP = 0.001
+"""Metres the object must move along the entrance for the search to have found it."""
 _ANGLE_MARGIN = 0.087
 """Radians added to the angle of a position-controlled turn for its travel limit."""
 _ANGLE_TOL = 0.035
@@ -323,6 +331,7 @@ def run_primitive(
         t_cmd = t_cmd - d * (d @ t_cmd)
         Sr = _without_axis(Sr, d)
     c_start = X0[:3, :3] @ center_G + X0[:3, 3]
+    X_g = X0
     expected = _expected(prim, X_plan, center_G)
     t0 = hand.time
     limit = path.duration + STALL_TIME
@@ -339,7 +348,9 @@ def run_primitive(
         sample(hand)
         X = hand.pose()
         c = X[:3, :3] @ center_G + X[:3, 3]
-        travel = _angle_about(X0[:3, :3], X[:3, :3], d) if rot else float((c - c_start) @ d)
+        if guard_from > 0 and hand.time - t0 < guard_from:
+            X_g, c_start = X, c  # travel counts from the end of the via poses
+        travel = _angle_about(X_g[:3, :3], X[:3, :3], d) if rot else float((c - c_start) @ d)
         if kind in ("approach", "align"):
             if kind == "approach" and np.linalg.norm(Fc) > prim.stop.force:
                 outcome = "collision"
@@ -406,39 +417,123 @@ def _reached(prim: Any, X: FloatArray, center_G: FloatArray, size: float) -> boo
 
 
 def align_in_contact(
-    hand: Hand, prim: Any, entrance: FloatArray, push: float, sample: Sampler
+    hand: Hand, prim: Any, entrance: FloatArray, push: float, angular: float, sample: Sampler
 ) -> PrimitiveRun:
-    """Align by compliance while touching: the contacts centre the object.
+    """Align: turn to the planned orientation, then search the entrance by touch.
 
-    The alignment directions and axes are force controlled with zero force and torque (free
-    to move), the object is pushed lightly (``push`` N) along ``entrance`` (the direction of
-    the critical move that follows), every other direction holds the current pose. It ends
-    when the object has settled in the alignment directions (speeds below
-    ``_REACH_TOL`` per second and :data:`_SETTLED` rad/s for ``_CONFIRM`` steps).
+    1. The orientation turns (position control, at the plan's angular speed) to the planned
+       one about the object's leading point (the middle of its points farthest along
+       ``entrance``), so the part that enters first stays at the entrance; a pure offset
+       of the environment does not change the orientation, and a rotation of a degree is
+       left to the compliance of the next move.
+    2. The object is pushed lightly (``push`` N) along ``entrance`` while its position
+       sweeps the alignment directions in a widening zig-zag (one direction) or square
+       spiral (two) of pitch :data:`SEARCH_PITCH` up to :data:`SEARCH_RADIUS`, at
+       :data:`SEARCH_SPEED`. It ends as soon as the object has dropped
+       :data:`SEARCH_DROP` along ``entrance`` (the entrance is found: the next, critical,
+       move follows); a sweep that ends without it has failed (``stall``).
+
+    The plan's aligned position is not used: the environment's offset is unknown and
+    larger than the clearance, so only contact can tell where the entrance is.
     """
     al = prim.alignment
     X0 = hand.pose()
-    center_G = _to_G(prim.target.X_EG, prim.compliance.center)
-    T = np.vstack([al.translations.reshape(-1, 3), entrance.reshape(-1, 3)])
-    St = T.T @ np.linalg.pinv(T @ T.T) @ T
-    Sr = al.rotations.T @ al.rotations if len(al.rotations) else np.zeros((3, 3))
+    center_G = _leading_point(hand, X0, entrance)
+    if center_G is None:
+        center_G = _to_G(prim.target.X_EG, prim.compliance.center)
+    X1 = X0.copy()
+    X1[:3, :3] = prim.target.X_EG[:3, :3]
+    X1[:3, 3] = X0[:3, :3] @ center_G + X0[:3, 3] - X1[:3, :3] @ center_G
+    turn = _path(X0, X1, center_G, 1.0, angular)
+    E = _projector(entrance.reshape(1, 3)) if np.linalg.norm(entrance) > 0 else np.zeros((3, 3))
+    U = al.translations.reshape(-1, 3)
+    U = U - (U @ E)  # sweep across the entrance direction only
+    # the search is centred on the plan's aligned position (off by the environment's offset)
+    c_plan = prim.target.X_EG[:3, :3] @ center_G + prim.target.X_EG[:3, 3]
+    c_turn = X1[:3, :3] @ center_G + X1[:3, 3]
+    sweep = _sweep(U, _projector(U) @ (c_plan - c_turn) if len(U) else np.zeros(3))
     f = push * entrance
-    t0, streak = hand.time, 0
+    t0 = hand.time
     Fc, Tc = np.zeros(3), np.zeros(3)
-    while hand.time - t0 < STALL_TIME:
-        Fc, Tc = hand.step(X0, center_G, S_t=St, S_r=Sr, force=f)
+    c_start: FloatArray | None = None
+    outcome = "stall"
+    while hand.time - t0 < turn.duration + sweep.duration + STALL_TIME:
+        t = hand.time - t0
+        X_des = turn.at(t)
+        if t >= turn.duration:
+            X_des = X_des.copy()
+            X_des[:3, 3] += sweep.at(t - turn.duration)
+        Fc, Tc = hand.step(X_des, center_G, S_t=E, force=f)
         sample(hand)
         X = hand.pose()
-        w, v = hand.velocity(X[:3, :3] @ center_G + X[:3, 3])
-        vt = al.translations @ v if len(al.translations) else np.zeros(0)
-        wr = al.rotations @ w if len(al.rotations) else np.zeros(0)
-        still = np.all(np.abs(vt) < _REACH_TOL) and np.all(np.abs(wr) < _SETTLED)
-        streak = streak + 1 if still else 0
-        if streak >= 5 * _CONFIRM:
+        c = X[:3, :3] @ center_G + X[:3, 3]
+        if t < turn.duration:
+            continue
+        if c_start is None:
+            c_start = c
+        if float((c - c_start) @ entrance) >= SEARCH_DROP:
+            outcome = "reached"
             break
-    outcome = "reached" if streak >= 5 * _CONFIRM else "stall"
+        if t - turn.duration > sweep.duration + 0.5:
+            break
     return PrimitiveRun(prim.index, "align", outcome, t0, hand.time, 0.0,
                         float(np.linalg.norm(Fc)), float(np.linalg.norm(Tc)))  # fmt: skip
+
+
+@dataclass
+class _Sweep:
+    """Offsets (metres) along a polyline visited at a constant speed."""
+
+    points: FloatArray
+    speed: float
+
+    @property
+    def duration(self) -> float:
+        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum()) / self.speed
+
+    def at(self, t: float) -> FloatArray:
+        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        s = t * self.speed
+        for k, L in enumerate(seg):
+            if s <= L and L > 0:
+                out: FloatArray = self.points[k] + (s / L) * (self.points[k + 1] - self.points[k])
+                return out
+            s -= L
+        last: FloatArray = self.points[-1]
+        return last
+
+
+def _sweep(U: FloatArray, start: FloatArray) -> _Sweep:
+    """Zig-zag (one direction) or square spiral (two) over the rows of ``U`` about ``start``."""
+    B = _basis(U.T @ U) if len(U) else np.zeros((0, 3))
+    n = int(SEARCH_RADIUS / SEARCH_PITCH)
+    pts: list[FloatArray] = [np.zeros(3)]
+    if len(B) == 1:
+        for k in range(1, n + 1):
+            pts.append(((-1) ** k) * k * SEARCH_PITCH * B[0])
+    elif len(B) >= 2:
+        x = y = 0.0
+        step, k = 1, 0
+        while max(abs(x), abs(y)) < SEARCH_RADIUS:
+            for axis in range(2):
+                sign = 1 if k % 2 == 0 else -1
+                if axis == 0:
+                    x += sign * step * SEARCH_PITCH
+                else:
+                    y += sign * step * SEARCH_PITCH
+                pts.append(x * B[0] + y * B[1])
+            step, k = step + 1, k + 1
+    return _Sweep(np.vstack([np.zeros(3), start + np.array(pts)]), SEARCH_SPEED)
+
+
+def _leading_point(hand: Hand, X: FloatArray, entrance: FloatArray) -> FloatArray | None:
+    """Middle of the object's vertices within 1 mm of its farthest along ``entrance`` (G)."""
+    if not np.linalg.norm(entrance) > 0:
+        return None
+    V = np.concatenate([p.vertices for p in hand.scene.pieces["grasped"].pieces])
+    s = (V @ X[:3, :3].T) @ entrance
+    lead: FloatArray = V[s >= s.max() - 1e-3].mean(axis=0)
+    return lead
 
 
 def _entrance(program: Any, k: int) -> FloatArray:
@@ -469,7 +564,9 @@ def run_program(hand: Hand, program: Any, sample: Sampler) -> list[PrimitiveRun]
     up = -np.asarray(pushes[0], dtype=np.float64) if pushes else None
     for k, prim in enumerate(program.primitives):
         if str(prim.kind) == "align" and prim.alignment is not None:
-            run = align_in_contact(hand, prim, _entrance(program, k), pp.hold_force, sample)
+            run = align_in_contact(
+                hand, prim, _entrance(program, k), pp.hold_force, pp.angular_speed, sample
+            )
         else:
             run = run_primitive(hand, prim, X_plan, speeds, sample, up)
         runs.append(run)

@@ -49,8 +49,8 @@ class Gains:
 
     k_t: float = 3000.0
     d_t: float = 120.0
-    k_r: float = 6.0
-    d_r: float = 0.25
+    k_r: float = 30.0
+    d_r: float = 0.5
     df_t: float = 250.0
     df_r: float = 0.6
 
