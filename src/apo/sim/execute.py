@@ -314,11 +314,8 @@ def run_primitive(
     rot = prim.space is not None and str(prim.space) == "rotation"
     # type I: the axis detaches both ways, a torque about it only tips the object over an
     # end of the contact; the push-to lets the contact settle flush instead (zero torque)
-    settle = kind == "push_to" and rot and prim.type is not None and str(prim.type) == "I"
-    if settle:
-        t_cmd = t_cmd - d * (d @ t_cmd)
-        Sr = _with_axis(Sr, d)
-    turn = kind == "slide" and rot and ROTATE_SLIDES_BY_POSITION
+    settle = False
+    turn = kind in ("slide", "push_to") and rot and ROTATE_SLIDES_BY_POSITION
     travel_limit = prim.stop.travel
     if turn:
         # the turn goes to the target orientation whatever the sign of the recorded axis:
@@ -359,9 +356,14 @@ def run_primitive(
         elif kind == "release":
             done = travel >= expected and hand.time - t0 >= path.duration
         else:
-            if settle:
-                w, _ = hand.velocity(c)
-                hit = np.linalg.norm(Fc) >= _TOUCH and abs(float(w @ d)) < _SETTLED
+            if settle or (kind == "push_to" and turn):
+                # arrived at the planned orientation in contact, or stopped by a contact
+                arrived = hand.time - t0 >= path.duration and (
+                    abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
+                )
+                hit = (arrived and np.linalg.norm(Fc) >= _TOUCH) or (
+                    float(-(Tc @ d)) >= prim.stop.torque
+                )
             elif rot:
                 hit = float(-(Tc @ d)) >= prim.stop.torque
             else:
