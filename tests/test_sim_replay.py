@@ -19,7 +19,7 @@ from apo.recognition import recognize_frames
 from apo.sim.hand import Hand
 from apo.sim.replay import replay
 from apo.sim.scene import ContactParameters, build_scene
-from apo.synthetic import add_noise, peg_in_hole_2d
+from apo.synthetic import add_noise, all_demos, peg_in_hole_2d
 
 
 @cache
@@ -100,6 +100,53 @@ def test_replay_of_the_peg_in_hole_reaches_the_final_state_under_perturbation() 
     assert res.states_reached[0] == "A" and res.states_reached[-1] == task.states[-1].id
     assert res.max_penetration < 5e-5
     assert all(r.ok for r in res.primitives)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        "square_peg_in_hole",
+        pytest.param(
+            "block_on_table_to_corner",
+            marks=pytest.mark.xfail(
+                reason="known weakness (docs/sim.md): with some noise realisations the last "
+                "push into the corner tips the block over about the free rotation axis the "
+                "plan leaves torque-controlled at zero",
+                strict=False,
+            ),
+        ),
+        "block_tipping",
+    ],
+)
+def test_every_scripted_demonstration_replays(name: str) -> None:
+    demo = all_demos()[name]
+    noisy = add_noise(demo, sigma_mm=0.5, sigma_deg=0.5, seed=5)
+    task = recognize_frames(
+        demo.grasped, demo.environment, noisy.times, noisy.X_EG, units="mm"
+    ).task
+    # nominal conditions here; robustness to perturbation is measured by benchmarks/replay.py
+    res = replay(task, demo.grasped, demo.environment, seed=2)
+    assert res.success, res.verdict
+    assert res.states_reached[-1] == task.states[-1].id
+    assert res.max_penetration < 5e-5
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_the_real_demonstration_replays(
+    real_data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "real"
+    demo = real_data_dir / "peg_in_hole.pose.list"
+    assert main(["analyze", str(demo), "--out", str(out), "--no-plot", "--no-report"]) == 0
+    capsys.readouterr()
+    rc = main(["replay", str(out / "task.json"), "--json", "--perturb", "2,2",
+               "--environment-offset", "1,1", "--seed", "4"])  # fmt: skip
+    res = json.loads(capsys.readouterr().out)
+    assert rc == 0, res["verdict"]
+    assert res["success"] and res["final_state"] == res["task_states"][-1]
+    assert res["max_penetration"] < 0.05  # mm
 
 
 @pytest.mark.slow

@@ -1,22 +1,22 @@
 """Execution of a skill program (and of the observed poses) by the compliant hand.
 
 Each primitive of :class:`apo.motion.SkillProgram` becomes a run of control steps of
-:class:`apo.sim.hand.Hand` (``docs/sim.md``):
+:class:`apo.sim.hand.Hand` (the table in ``docs/sim.md`` is the reference):
 
-- ``approach``, ``align``: the position-controlled part of the pose follows a straight
-  path (centre point linear, orientation about it) to the target at the plan's speeds; it
-  ends when the target is reached within tolerance (``align``: the alignment tolerance in
-  its directions). A contact force above the stop force during an approach is a collision.
-- ``push_to``: a guarded move. The directions of the primitive's compliance are force
-  controlled (the push along the direction or about the axis, the holding forces into the
-  kept contacts), the rest follow the path to the planned target. It ends when the sensed
-  reaction against the motion (contact force along ``-direction``, or contact torque about
-  the axis against the push) exceeds the stop force (torque); travelling farther than the
-  stop travel without that is a failure.
-- ``slide``: the same control; it ends when the expected travel is done, or earlier on the
-  reaction (blocked by a new contact); beyond the stop travel it fails.
-- ``release``: the direction is position-controlled away from the contact; it ends when the
-  expected travel is done.
+- ``approach``: position control through free space (lifting first); it ends at the target
+  within 0.2 mm; a contact force above the stop force is a collision.
+- ``push_to`` (translation): a guarded move under the plan's compliance (force along the
+  direction, holding forces into the kept contacts, the rest follows the path to the
+  planned target); it ends when the sensed reaction against the direction exceeds the stop
+  force; beyond the stop travel it fails.
+- ``push_to`` / ``slide`` (rotation): a position-controlled turn about the axis to the
+  target orientation (:data:`ROTATE_BY_POSITION`), ending there in contact or on the
+  reaction torque.
+- ``slide`` (translation): the plan's compliance; it ends when the expected travel is done
+  or on the reaction.
+- ``release``: position control away from the contact for the expected travel.
+- ``align``: turn to the planned orientation, then search the entrance by touch
+  (:func:`align_in_contact`).
 
 None of them stops on a time-out; a primitive that neither ends nor fails within
 ``nominal time + STALL_TIME`` has stalled (jammed) and fails.
@@ -44,18 +44,19 @@ STALL_TIME = 3.0
 """Seconds a primitive may run beyond its nominal duration before it counts as jammed."""
 FREE_SPEED_FACTOR = 4.0
 """Approaches move through free space this many times faster than the plan's speeds."""
-ROTATE_SLIDES_BY_POSITION = True
-"""Execute a rotational slide by a position-controlled turn about its axis (see module doc)."""
+ROTATE_BY_POSITION = True
+"""Execute rotational push-to and slide by a position-controlled turn about their axis to
+the target orientation (everything else as the plan's compliance says). With a pure torque
+(False) a type I push-to only tips the object over an end of its contact and a slide wedged
+the T-peg in the slot under a 1 mm environment offset."""
 _CONFIRM = 10
 """Steps a stop condition must hold in a row (filters contact impacts)."""
 _REACH_TOL = 2e-4
 """Position tolerance (m) of approach targets; rotations: _REACH_TOL / object size."""
 _SETTLE = 0.05
 """Seconds of holding after each primitive."""
-_SETTLED = 0.01
-"""Angular speed (rad/s) below which a type I rotational push-to has settled."""
 _TOUCH = 0.5
-"""Contact force (N) that counts as touching when a type I push-to settles."""
+"""Contact force (N) that counts as touching at the end of a rotational push-to."""
 _SLOW_ZONE = 0.003
 """Metres before the expected end of a translational push-to where it slows down (the
 environment's offset is unknown, up to a millimetre or so)."""
@@ -155,11 +156,6 @@ def _path(
     # the smoothstep peaks at 1.5x the mean speed
     T = 1.5 * max(float(np.linalg.norm(c1 - c0)) / speed, ang / angular, 0.02)
     return _Path(X0, X1, center_G, T)
-
-
-def _with_axis(S: FloatArray, d: FloatArray) -> FloatArray:
-    """Projector on span(S) + d."""
-    return _projector(np.vstack([_basis(S), d]))
 
 
 def _without_axis(S: FloatArray, d: FloatArray) -> FloatArray:
@@ -312,10 +308,8 @@ def run_primitive(
     t_cmd = comp.torque_axes.T @ comp.torques
     d = np.asarray(prim.direction, dtype=np.float64)
     rot = prim.space is not None and str(prim.space) == "rotation"
-    # type I: the axis detaches both ways, a torque about it only tips the object over an
-    # end of the contact; the push-to lets the contact settle flush instead (zero torque)
-    settle = False
-    turn = kind in ("slide", "push_to") and rot and ROTATE_SLIDES_BY_POSITION
+    # rotational push-to and slide turn about their axis by position control (docs/sim.md)
+    turn = kind in ("slide", "push_to") and rot and ROTATE_BY_POSITION
     travel_limit = prim.stop.travel
     if turn:
         # the turn goes to the target orientation whatever the sign of the recorded axis:
@@ -323,8 +317,6 @@ def run_primitive(
         to_go = abs(_angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d))
         travel_limit = max(travel_limit, to_go + _ANGLE_MARGIN)
         d = d if _angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d) >= 0 else -d
-        # a rotational slide turns by the planned angle under position control about its
-        # axis (the rest stays as planned): a pure torque wedges the object (docs/sim.md)
         t_cmd = t_cmd - d * (d @ t_cmd)
         Sr = _without_axis(Sr, d)
     c_start = X0[:3, :3] @ center_G + X0[:3, 3]
@@ -356,7 +348,7 @@ def run_primitive(
         elif kind == "release":
             done = travel >= expected and hand.time - t0 >= path.duration
         else:
-            if settle or (kind == "push_to" and turn):
+            if kind == "push_to" and turn:
                 # arrived at the planned orientation in contact, or stopped by a contact
                 arrived = hand.time - t0 >= path.duration and (
                     abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
