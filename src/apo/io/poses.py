@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from apo.errors import InputFormatError
 from apo.spatial import (
@@ -69,6 +70,7 @@ __all__ = [
     "read_pose_csv",
     "read_pose_list",
     "write_pose_csv",
+    "write_pose_list",
 ]
 
 UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
@@ -459,6 +461,16 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
     )
 
 
+def _check_rotations(path: Path, x: FloatArray) -> FloatArray:
+    """Return the 3x3 blocks of poses ``x`` (N, 4, 4); raise if one is not a rotation."""
+    r = x[:, :3, :3]
+    err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(r) <= 0))
+    if bad.size:
+        raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
+    return r
+
+
 def write_pose_csv(
     path: str | Path,
     times: npt.ArrayLike,
@@ -517,12 +529,7 @@ def write_pose_csv(
         raise InputFormatError(
             f"{path}: times must strictly increase: frame {k} has t = {t[k]} after {t[k - 1]}"
         )
-    r = x[:, :3, :3]
-    err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(r)
-    bad = np.flatnonzero((err > 1e-6) | (det <= 0))
-    if bad.size:
-        raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
+    r = _check_rotations(path, x)
     cols: list[tuple[str, FloatArray]] = []
     for name, values in (extra or {}).items():
         if not name or name.lower() in CSV_COLUMNS or any(c in name for c in ',"\r\n'):
@@ -596,3 +603,71 @@ def load_demonstration(
         grasped_path=dem.grasped_path if grasped is None else Path(grasped),
         environment_path=dem.environment_path if environment is None else Path(environment),
     )
+
+
+def write_pose_list(
+    path: str | Path,
+    X_EG: npt.ArrayLike,
+    *,
+    units: str,
+    models: tuple[str | Path, str | Path],
+    tags: tuple[int, int] = (0, 1),
+) -> Path:
+    r"""Write poses of G in E as a ``.pose.list`` (the exact inverse of :func:`read_pose_list`).
+
+    The camera frame of the file is the environment frame: each scene has the pose of G
+    (``X_EG``) and the identity for E, so that ``inv(X_CE) @ X_CG`` gives ``X_EG`` back.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (overwritten).
+    X_EG : array_like, shape (N, 4, 4), metres
+        Poses of G in E, one per scene (``N >= 1``).
+    units : {"mm", "cm", "m", "in"}
+        Length unit to write positions in.
+    models : (str or Path, str or Path)
+        Model files of G and E as the list should name them: relative to the folder of
+        ``path`` (as the reader resolves them) or absolute.
+    tags : (int, int)
+        Ids written at the start of the pose lines of G and E.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    InputFormatError
+        Wrong shape, no scene, non-finite values, a rotation part that is not a rotation,
+        an empty model path or one with a line break.
+
+    Notes
+    -----
+    Rotations are written as a unit axis and an angle in ``[0, pi]`` (axis ``1 0 0`` for
+    the identity); numbers with ``repr``, so a read gives back the poses to about 1e-15.
+    """
+    path = Path(path)
+    scale = _scale(units, str(path))
+    x = np.asarray(X_EG, dtype=np.float64)
+    if x.ndim != 3 or x.shape[1:] != (4, 4) or x.shape[0] == 0:
+        raise InputFormatError(f"{path}: X_EG must have shape (N, 4, 4), N > 0, got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise InputFormatError(f"{path}: X_EG must be finite")
+    r = _check_rotations(path, x)
+    names = [str(m) for m in models]
+    if len(names) != 2 or any(not m.strip() or "\n" in m or "\r" in m for m in names):
+        raise InputFormatError(f"{path}: need two model paths without line breaks, got {names}")
+    rotvec = Rotation.from_matrix(r).as_rotvec()
+    out = ["No of Models: 2", *names, "", f"No of Scenes: {x.shape[0]}"]
+    identity = f"{int(tags[1])} 0.0 0.0 0.0 1.0 0.0 0.0 0.0"
+    for k in range(x.shape[0]):
+        angle = float(np.linalg.norm(rotvec[k]))
+        axis = rotvec[k] / angle if angle > 0 else np.array([1.0, 0.0, 0.0])
+        vals = [*(x[k, :3, 3] / scale), *axis, angle]
+        out.append(f"{int(tags[0])} " + " ".join(repr(float(v)) for v in vals))
+        out.append(identity)
+        out.append("")
+    path.write_text("\n".join(out), encoding="utf-8")
+    return path

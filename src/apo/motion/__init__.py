@@ -1,9 +1,11 @@
 """Robot motion from a task model: the skill program and the object's pose trajectory.
 
 Planning only (no simulator here): :mod:`apo.motion.program` holds the types of the skill
-program and its JSON form ``apo.motion/1`` (``docs/motion.md``).
+program and its JSON form ``apo.motion/1`` (``docs/motion.md``), :mod:`apo.motion.planner`
+the planner (:func:`plan`), :mod:`apo.motion.trajectory` the nominal pose trajectory.
 """
 
+from apo.motion.planner import plan
 from apo.motion.program import (
     SCHEMA,
     Alignment,
@@ -19,6 +21,7 @@ from apo.motion.program import (
     program_from_dict,
     program_to_dict,
 )
+from apo.motion.trajectory import Trajectory, trajectory
 
 __all__ = [
     "SCHEMA",
@@ -32,6 +35,9 @@ __all__ = [
     "SkillProgram",
     "StopCondition",
     "Target",
+    "Trajectory",
+    "plan",
     "program_from_dict",
     "program_to_dict",
+    "trajectory",
 ]

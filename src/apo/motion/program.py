@@ -119,11 +119,16 @@ class StopCondition:
         Newton metres, > 0.
     travel : float
         Metres (translation) or radians (rotation), > 0: the safeguard.
+    expected : float
+        Metres or radians, >= 0: the travel the demonstration shows (start to target pose
+        of the primitive, along ``direction`` or about the axis). A ``release`` moves this far
+        (at least ``PlanParameters.standoff``); a ``slide`` that meets no obstacle ends here.
     """
 
     force: float
     torque: float
     travel: float
+    expected: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -243,6 +248,9 @@ class Primitive:
     compliance : Compliance
     alignment : Alignment or None
         ``align`` primitives only.
+    via : tuple of ndarray, shape (4, 4)
+        Poses (metres) the nominal path passes through before ``target.X_EG``: the poses of
+        the states of the ``folded`` transitions, in order.
     """
 
     index: int
@@ -261,6 +269,7 @@ class Primitive:
     stop: StopCondition
     compliance: Compliance
     alignment: Alignment | None = None
+    via: tuple[FloatArray, ...] = ()
 
     @property
     def guarded(self) -> bool:
@@ -292,6 +301,8 @@ class PlanParameters:
         Radians added to the expected travel of a rotational guarded move.
     speed, angular_speed : float
         m/s and rad/s of the nominal trajectory.
+    sample_period : float
+        Seconds between two samples of the trajectory (``motion.csv``).
     """
 
     standoff: float = 0.005
@@ -305,6 +316,7 @@ class PlanParameters:
     angular_margin: float = 0.087
     speed: float = 0.02
     angular_speed: float = 0.35
+    sample_period: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -407,6 +419,7 @@ def _primitive_to_dict(p: Primitive, k: float) -> dict[str, Any]:
             "force": _r(p.stop.force),
             "torque": _r(p.stop.torque),
             "travel": _r(p.stop.travel if rot else p.stop.travel * k),
+            "expected": _r(p.stop.expected if rot else p.stop.expected * k),
         },
         "compliance": {
             "center": _vec(c.center, k),
@@ -418,6 +431,7 @@ def _primitive_to_dict(p: Primitive, k: float) -> dict[str, Any]:
             "position_axes": _rows(c.position_axes),
         },
         "alignment": None,
+        "via": [_pose(X, k) for X in p.via],
     }
     if p.alignment is not None:
         a = p.alignment
@@ -489,6 +503,12 @@ class _MotionReader(_Reader):
         x = self.number(v, where)
         if x <= 0:
             raise self.fail(where, f"expected a positive number, got {x!r}")
+        return x
+
+    def non_negative(self, v: Any, where: str) -> float:
+        x = self.number(v, where)
+        if x < 0:
+            raise self.fail(where, f"expected a non-negative number, got {x!r}")
         return x
 
     def unit(self, v: Any, where: str, *, allow_zero: bool = False) -> FloatArray:
@@ -580,6 +600,16 @@ def _alignment_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> Ali
     )
 
 
+def _stop_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> StopCondition:
+    d = rd.obj(v, where)
+    return StopCondition(
+        force=rd.positive(rd.get(d, "force", where), f"{where}.force"),
+        torque=rd.positive(rd.get(d, "torque", where), f"{where}.torque"),
+        travel=rd.positive(rd.get(d, "travel", where), f"{where}.travel") * k,
+        expected=rd.non_negative(d.get("expected", 0.0), f"{where}.expected") * k,
+    )
+
+
 def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primitive:
     w = f"primitives[{i}]"
     d = rd.obj(v, w)
@@ -598,7 +628,6 @@ def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primiti
         raise rd.fail(f"{w}.transition", f"unexpected {tr!r} for a {kind} primitive")
     pt = d.get("point")
     td = rd.obj(rd.get(d, "target", w), f"{w}.target")
-    sd = rd.obj(rd.get(d, "stop", w), f"{w}.stop")
     travel_k = 1.0 if space == MotionSpace.ROTATION else k
     alignment = _alignment_from_dict(rd, d.get("alignment"), f"{w}.alignment", k)
     if (alignment is None) == (kind == PrimitiveKind.ALIGN):
@@ -624,13 +653,13 @@ def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primiti
             elements=rd.elements(td.get("elements", []), f"{w}.target.elements", k),
             X_EG=rd.pose(rd.get(td, "pose", f"{w}.target"), f"{w}.target.pose", k),
         ),
-        stop=StopCondition(
-            force=rd.positive(rd.get(sd, "force", f"{w}.stop"), f"{w}.stop.force"),
-            torque=rd.positive(rd.get(sd, "torque", f"{w}.stop"), f"{w}.stop.torque"),
-            travel=rd.positive(rd.get(sd, "travel", f"{w}.stop"), f"{w}.stop.travel") * travel_k,
-        ),
+        stop=_stop_from_dict(rd, rd.get(d, "stop", w), f"{w}.stop", travel_k),
         compliance=_compliance_from_dict(rd, rd.get(d, "compliance", w), f"{w}.compliance", k),
         alignment=alignment,
+        via=tuple(
+            rd.pose(X, f"{w}.via[{j}]", k)
+            for j, X in enumerate(rd.lst(d.get("via", []), f"{w}.via"))
+        ),
     )
 
 

@@ -1,0 +1,531 @@
+"""Plan a skill program from a task model (``docs/motion.md``).
+
+:func:`plan` walks the task's transitions in order and emits one primitive per sub-skill
+(``push_to``, ``slide``, ``release``), preceded by an ``approach`` through free space to a
+stand-off before the first contact and by an ``align`` before each critical transition
+(SM -> C, SD -> C). Transitions without a sub-skill (SM -> M and the like) are folded into
+the next primitive (paper 3.5). Every direction, axis, force and tolerance comes from the
+task model's geometry: the sub-skills' directions, points and subspaces, the elements'
+separating normals and the DOF subspaces of the states (:func:`apo.dof.analyze`).
+
+SI units and the environment frame throughout; no simulator and no I/O here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from apo.dof import ContactPoint, analyze
+from apo.errors import InputFormatError
+from apo.motion.program import (
+    Alignment,
+    Compliance,
+    MotionSpace,
+    PlanParameters,
+    Primitive,
+    PrimitiveKind,
+    RotationType,
+    SkillProgram,
+    StopCondition,
+    Target,
+)
+from apo.spatial import invert_pose, matrix_from_axis_angle
+from apo.task import Element, ModelRef, State, SubSkill, TaskModel
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["plan"]
+
+_EPS = 1e-9
+_RANK_TOL = 1e-6
+
+
+# --------------------------------------------------------------------------------------------
+# Small geometry helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _unit(v: npt.ArrayLike) -> FloatArray | None:
+    a = np.asarray(v, dtype=float)
+    n = float(np.linalg.norm(a))
+    return None if n < _EPS else a / n
+
+
+def _basis(rows: Sequence[FloatArray] | FloatArray) -> FloatArray:
+    """Orthonormal rows spanning ``rows`` (empty (0, 3) if they span nothing)."""
+    a = np.asarray(rows, dtype=float).reshape(-1, 3)
+    if a.size == 0:
+        return np.zeros((0, 3))
+    _, s, vt = np.linalg.svd(a)
+    r = int(np.sum(s > _RANK_TOL * max(1.0, float(s[0]))))
+    return np.asarray(vt[:r], dtype=float)
+
+
+def _complement(basis: FloatArray) -> FloatArray:
+    """Orthonormal rows spanning the orthogonal complement of ``basis`` in R^3."""
+    if basis.shape[0] == 0:
+        return np.eye(3)
+    _, _, vt = np.linalg.svd(np.vstack([basis, np.zeros((3 - basis.shape[0], 3))]))
+    return np.asarray(vt[basis.shape[0] :], dtype=float)
+
+
+def _remove(rows: FloatArray, span: FloatArray) -> FloatArray:
+    """Orthonormal rows of ``rows`` minus their components in ``span``."""
+    if rows.shape[0] == 0 or span.shape[0] == 0:
+        return _basis(rows)
+    return _basis(rows - rows @ span.T @ span)
+
+
+def _translate(X: FloatArray, t: FloatArray) -> FloatArray:
+    out = X.copy()
+    out[:3, 3] += t
+    return out
+
+
+def _rotate_about(X: FloatArray, axis: FloatArray, point: FloatArray, angle: float) -> FloatArray:
+    """``X`` turned by ``angle`` about the line through ``point`` along ``axis`` (in E)."""
+    R = matrix_from_axis_angle(axis, angle)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = point - R @ point
+    return T @ X
+
+
+def _rotvec(X_from: FloatArray, X_to: FloatArray) -> FloatArray:
+    """Rotation vector of ``R_to R_from^T`` (environment frame, rad)."""
+    return np.asarray(Rotation.from_matrix(X_to[:3, :3] @ X_from[:3, :3].T).as_rotvec())
+
+
+def _moved(X_from: FloatArray, X_to: FloatArray, p: FloatArray) -> FloatArray:
+    """Where the point of G that is at ``p`` at ``X_to`` was at ``X_from``."""
+    q = invert_pose(X_to) @ np.append(p, 1.0)
+    return np.asarray((X_from @ q)[:3])
+
+
+# --------------------------------------------------------------------------------------------
+# Contacts of the task
+# --------------------------------------------------------------------------------------------
+
+
+def _key(e: Element) -> tuple[str, tuple[str, int], tuple[str, int]]:
+    return (e.kind, e.grasped, e.environment)
+
+
+def _kept(a: State, b: State) -> list[Element]:
+    """Elements of ``b`` that ``a`` has too (the maintained contacts)."""
+    keys = {_key(e) for e in a.elements}
+    return [e for e in b.elements if _key(e) in keys]
+
+
+def _new(a: State, b: State) -> list[Element]:
+    """Elements of ``b`` that ``a`` does not have."""
+    keys = {_key(e) for e in a.elements}
+    return [e for e in b.elements if _key(e) not in keys]
+
+
+def _centroid(elements: Sequence[Element]) -> FloatArray | None:
+    if not elements:
+        return None
+    return np.asarray(np.mean([e.point for e in elements], axis=0), dtype=float)
+
+
+def _normals(elements: Sequence[Element]) -> FloatArray:
+    if not elements:
+        return np.zeros((0, 3))
+    return np.vstack([e.normals for e in elements])
+
+
+def _constrained(state: State) -> tuple[FloatArray, FloatArray]:
+    """Regular constraining subspaces (translation, rotation axes) of a state's contacts."""
+    if not state.elements:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    res = analyze([ContactPoint(point=e.point, normals=e.normals) for e in state.elements])
+    g = res.geometry
+    return np.asarray(g.translation_constraining), np.asarray(g.rotation_constraining)
+
+
+# --------------------------------------------------------------------------------------------
+# Poses along a transition
+# --------------------------------------------------------------------------------------------
+
+
+def _angle_about(X_from: FloatArray, X_to: FloatArray, axis: FloatArray) -> float:
+    """Non-negative angle the motion ``X_from -> X_to`` turns about ``axis`` (rad)."""
+    return max(0.0, float(_rotvec(X_from, X_to) @ axis))
+
+
+def _intermediate_poses(
+    X_start: FloatArray, X_end: FloatArray, subskills: Sequence[SubSkill], ref: FloatArray
+) -> list[FloatArray]:
+    """Target pose of each sub-skill of a transition, the last being ``X_end``.
+
+    Walks backwards from ``X_end``: before a rotational sub-skill the object is turned
+    back about its axis through its point by the angle the demonstration turns about that
+    axis; before a translational one it is moved back along its direction by the distance
+    the point ``ref`` (at ``X_end``) travels along it.
+    """
+    poses = [X_end]
+    for u in reversed(subskills[1:]):
+        d = _unit(u.direction)
+        X = poses[0]
+        if d is not None and u.space == "rotation":
+            pivot = u.point if u.point is not None else ref
+            X = _rotate_about(X, d, pivot, -_angle_about(X_start, X, d))
+        elif d is not None:
+            step = max(0.0, float((ref - _moved(X_start, X_end, ref)) @ d))
+            X = _translate(X, -step * d)
+        poses.insert(0, X)
+    return poses
+
+
+# --------------------------------------------------------------------------------------------
+# Compliance, stop condition
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Split:
+    """Force-controlled rows and the wrench wanted, gathered before orthonormalising."""
+
+    force_rows: list[FloatArray] = field(default_factory=list)
+    force: FloatArray = field(default_factory=lambda: np.zeros(3))
+    torque_rows: list[FloatArray] = field(default_factory=list)
+    torque: FloatArray = field(default_factory=lambda: np.zeros(3))
+    position_only_t: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    position_only_r: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def compliance(self, center: FloatArray) -> Compliance:
+        Ft = _remove(_basis(self.force_rows), self.position_only_t)
+        Fr = _remove(_basis(self.torque_rows), self.position_only_r)
+        return Compliance(
+            center=center,
+            force_directions=Ft,
+            forces=Ft @ self.force,
+            torque_axes=Fr,
+            torques=Fr @ self.torque,
+            position_directions=_complement(Ft),
+            position_axes=_complement(Fr),
+        )
+
+
+def _position_only(center: FloatArray) -> Compliance:
+    return _Split().compliance(center)
+
+
+def _hold(
+    split: _Split, kept: Sequence[Element], center: FloatArray, free: FloatArray, pp: PlanParameters
+) -> None:
+    """Force control into the kept contacts; torque control (zero) about their moment axes.
+
+    ``free`` is the unit direction of motion (or zeros): the holding force is taken
+    orthogonal to it. Opposing normals (walls on both sides) cancel: those directions are
+    force-controlled with zero force, i.e. compliant.
+    """
+    N = _normals(kept)
+    if N.shape[0] == 0:
+        return
+    rows = N - np.outer(N @ free, free)
+    split.force_rows.extend(rows)
+    s = rows.sum(axis=0)
+    us = _unit(s)
+    if us is not None and float(np.linalg.norm(s)) > 0.5:
+        split.force = split.force - pp.hold_force * us
+    for e in kept:
+        for n in e.normals:
+            m = np.cross(e.point - center, n)
+            if np.linalg.norm(m) > _RANK_TOL:
+                split.torque_rows.append(m)
+
+
+def _travel(kind: PrimitiveKind, rot: bool, expected: float, pp: PlanParameters) -> StopCondition:
+    margin = pp.angular_margin if rot else pp.travel_margin
+    if kind == PrimitiveKind.RELEASE and not rot:
+        expected = max(expected, pp.standoff)
+    return StopCondition(
+        force=pp.force_threshold,
+        torque=pp.torque_threshold,
+        travel=expected + margin,
+        expected=expected,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Primitives
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Cursor:
+    """State of the walk: the nominal pose reached, the transitions awaiting a primitive."""
+
+    X: FloatArray
+    state: State
+    folded: list[int] = field(default_factory=list)
+    align_for: int | None = None
+    out: list[Primitive] = field(default_factory=list)
+
+
+def _subskill_primitive(
+    task: TaskModel,
+    i: int,
+    j: int,
+    X_start: FloatArray,
+    X_target: FloatArray,
+    held: FloatArray | None,
+    pp: PlanParameters,
+) -> Primitive:
+    """Return the primitive of sub-skill ``j`` of transition ``i`` (``X_start`` to ``X_target``)."""
+    tr = task.transitions[i]
+    u = tr.subskills[j]
+    a, b = task.state(tr.from_id), task.state(tr.to_id)
+    kind = PrimitiveKind(u.kind)
+    rot = u.space == "rotation"
+    d = _unit(u.direction)
+    dz = np.zeros(3) if d is None else d
+    focus = (_new(b, a) if kind == PrimitiveKind.RELEASE else _new(a, b)) or list(b.elements)
+    c0 = _centroid(focus)
+    center = X_target[:3, 3].copy() if c0 is None else c0
+    if rot and u.point is not None and d is not None:
+        center = u.point + ((center - u.point) @ d) * d
+    split = _Split()
+    # contacts kept during the motion: all of the start state's, except those a release
+    # breaks (a slide keeps its support until the very end, where the support ends)
+    kept = _kept(a, b) if kind == PrimitiveKind.RELEASE else list(a.elements)
+    if rot:
+        expected = 0.0 if d is None else _angle_about(X_start, X_target, d)
+        if d is not None and kind != PrimitiveKind.RELEASE:
+            split.torque_rows.append(d)
+            split.torque = split.torque + pp.push_torque * d
+        elif d is not None:
+            split.position_only_r = d[None, :]
+        _hold(split, kept, center, np.zeros(3), pp)
+        if held is not None:
+            split.force_rows.append(held)
+            split.force = split.force + pp.hold_force * held
+    else:
+        expected = abs(float((center - _moved(X_start, X_target, center)) @ dz))
+        if d is not None and kind != PrimitiveKind.RELEASE:
+            split.force_rows.append(d)
+            split.force = split.force + pp.push_force * d
+        elif d is not None:
+            split.position_only_t = d[None, :]
+        _hold(split, kept, center, dz, pp)
+    return Primitive(
+        index=0,
+        kind=kind,
+        space=MotionSpace(u.space),
+        type=None if u.type is None else RotationType(u.type),
+        transition=i,
+        from_state=tr.from_id,
+        to_state=tr.to_id,
+        folded=(),
+        direction=dz,
+        point=None if not rot or u.point is None else np.asarray(u.point, dtype=float),
+        subspace=np.asarray(u.subspace, dtype=float).reshape(-1, 3),
+        source=u.source,
+        target=Target(state=b.id, elements=b.elements, X_EG=X_target),
+        stop=_travel(kind, rot, expected, pp),
+        compliance=split.compliance(center),
+    )
+
+
+def _position_controlled(
+    kind: PrimitiveKind,
+    state: State,
+    X: FloatArray,
+    center: FloatArray,
+    expected: float,
+    pp: PlanParameters,
+) -> Primitive:
+    """Return a position-controlled move (approach, align) to ``X``, staying in ``state``."""
+    return Primitive(
+        index=0,
+        kind=kind,
+        space=None,
+        type=None,
+        transition=None,
+        from_state=state.id,
+        to_state=state.id,
+        folded=(),
+        direction=np.zeros(3),
+        point=None,
+        subspace=np.zeros((0, 3)),
+        source="plan",
+        target=Target(state=state.id, elements=state.elements, X_EG=X),
+        stop=StopCondition(
+            force=pp.force_threshold,
+            torque=pp.torque_threshold,
+            travel=expected + pp.travel_margin,
+            expected=expected,
+        ),
+        compliance=_position_only(center),
+    )
+
+
+def _align_primitive(task: TaskModel, i: int, X_start: FloatArray, pp: PlanParameters) -> Primitive:
+    """``align`` before critical transition ``i``: match its target pose where it constrains."""
+    tr = task.transitions[i]
+    a, b = task.state(tr.from_id), task.state(tr.to_id)
+    ct_a, cr_a = _constrained(a)
+    ct_b, cr_b = _constrained(b)
+    T, Rr = _remove(ct_b, ct_a), _remove(cr_b, cr_a)
+    c = _centroid(b.elements)
+    ref = b.X_EG[:3, 3].copy() if c is None else c
+    # where the entrance point of G is now, then turn about it and move it in T only
+    here = _moved(X_start, b.X_EG, ref)
+    w = _rotvec(X_start, b.X_EG)
+    w_a = Rr.T @ (Rr @ w) if Rr.shape[0] else np.zeros(3)
+    angle = float(np.linalg.norm(w_a))
+    X = X_start if angle < _EPS else _rotate_about(X_start, w_a / angle, here, angle)
+    shift = T.T @ (T @ (ref - here)) if T.shape[0] else np.zeros(3)
+    X = _translate(X, shift)
+    pts = np.array([e.point for e in b.elements]) if b.elements else np.zeros((1, 3))
+    extent = float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=-1)))
+    alignment = Alignment(
+        translations=T,
+        rotations=Rr,
+        tolerance=pp.clearance,
+        angular_tolerance=pp.clearance / max(extent, pp.clearance),
+    )
+    prim = _position_controlled(PrimitiveKind.ALIGN, a, X, ref, float(np.linalg.norm(shift)), pp)
+    return replace(prim, transition=i, to_state=b.id, direction=np.zeros(3), alignment=alignment)
+
+
+def _approach(
+    task: TaskModel, first: int | None, pp: PlanParameters
+) -> tuple[Primitive, FloatArray]:
+    """Return the approach to a stand-off before transition ``first``, and its target pose."""
+    s0 = task.states[0]
+    X0 = s0.X_EG
+    X_goal = X0
+    if first is not None and not s0.elements:
+        tr = task.transitions[first]
+        b = task.state(tr.to_id)
+        c = _centroid(b.elements)
+        ref = b.X_EG[:3, 3] if c is None else c
+        X_first = _intermediate_poses(X0, b.X_EG, tr.subskills, ref)[0]
+        u0 = tr.subskills[0]
+        d = _unit(u0.direction) if u0.space == "translation" else None
+        back = -d if d is not None else _unit(_normals(_new(s0, b)).sum(axis=0))
+        X_goal = X_first if back is None else _translate(X_first, pp.standoff * back)
+    move = X_goal[:3, 3] - X0[:3, 3]
+    dist = float(np.linalg.norm(move))
+    prim = _position_controlled(PrimitiveKind.APPROACH, s0, X_goal, X_goal[:3, 3].copy(), dist, pp)
+    du = _unit(move)
+    prim = replace(prim, direction=np.zeros(3) if du is None else du)
+    return prim, X_goal
+
+
+def _emit_transition(task: TaskModel, i: int, cur: _Cursor, pp: PlanParameters) -> None:
+    """Append the primitives of transition ``i`` (which has sub-skills) to ``cur.out``."""
+    tr = task.transitions[i]
+    if tr.critical and cur.align_for is None:
+        cur.align_for = i
+    if cur.align_for is not None:
+        cur.out.append(_align_primitive(task, cur.align_for, cur.X, pp))
+        cur.X = cur.out[-1].target.X_EG
+        cur.align_for = None
+    b = task.state(tr.to_id)
+    c = _centroid(b.elements)
+    ref = b.X_EG[:3, 3] if c is None else c
+    targets = _intermediate_poses(cur.X, b.X_EG, tr.subskills, ref)
+    held: FloatArray | None = None
+    for j, (u, X_t) in enumerate(zip(tr.subskills, targets, strict=True)):
+        prim = _subskill_primitive(task, i, j, cur.X, X_t, held, pp)
+        if j == 0 and cur.folded:
+            via = tuple(task.state(task.transitions[f].to_id).X_EG for f in cur.folded)
+            prim = replace(prim, folded=tuple(cur.folded), via=via)
+            cur.folded = []
+        cur.out.append(prim)
+        cur.X = X_t
+        if u.space == "translation" and u.kind == "push_to" and _unit(u.direction) is not None:
+            held = _unit(u.direction)
+    cur.state = b
+
+
+def _check_task(task: TaskModel) -> None:
+    if not task.states:
+        raise InputFormatError(f"{task.source or 'task'}: no states: nothing to plan")
+    if len(task.transitions) != len(task.states) - 1:
+        raise InputFormatError(
+            f"{task.source or 'task'}: {len(task.transitions)} transitions for "
+            f"{len(task.states)} states"
+        )
+
+
+def plan(
+    task: TaskModel,
+    *,
+    parameters: PlanParameters | None = None,
+    task_ref: ModelRef | None = None,
+) -> SkillProgram:
+    """Return the skill program that executes ``task`` (``docs/motion.md``).
+
+    Parameters
+    ----------
+    task : apo.task.TaskModel
+        The recognised demonstration (SI units, environment frame).
+    parameters : PlanParameters, optional
+        Stand-off, clearance, forces, thresholds and speeds (SI); defaults if None.
+    task_ref : apo.task.ModelRef, optional
+        The ``task.json`` file planned from (path and SHA-256), recorded in the program.
+
+    Returns
+    -------
+    SkillProgram
+        ``approach``, then per transition with sub-skills one primitive per sub-skill (an
+        ``align`` first if the transition, or one folded into it, is critical).
+
+    Raises
+    ------
+    InputFormatError
+        A task without states or with inconsistent transitions.
+    """
+    pp = parameters or PlanParameters()
+    _check_task(task)
+    with_skills = [i for i, t in enumerate(task.transitions) if t.subskills]
+    approach, X = _approach(task, with_skills[0] if with_skills else None, pp)
+    cur = _Cursor(X=X, state=task.states[0], out=[approach])
+    for i, tr in enumerate(task.transitions):
+        if tr.subskills:
+            _emit_transition(task, i, cur, pp)
+            continue
+        cur.folded.append(i)
+        if tr.critical and cur.align_for is None:
+            cur.align_for = i
+    _finish(task, cur, pp)
+    prims = tuple(replace(p, index=k) for k, p in enumerate(cur.out))
+    final = task.states[-1]
+    return SkillProgram(
+        units=task.units,
+        task=task_ref or ModelRef(path="", sha256=None, name=task.source),
+        grasped=task.grasped,
+        environment=task.environment,
+        start_X_EG=task.states[0].X_EG,
+        final_state=final.id,
+        final_elements=final.elements,
+        primitives=prims,
+        parameters=pp,
+    )
+
+
+def _finish(task: TaskModel, cur: _Cursor, pp: PlanParameters) -> None:
+    """Fold trailing transitions without sub-skill into the last primitive."""
+    if cur.align_for is not None:
+        cur.out.append(_align_primitive(task, cur.align_for, cur.X, pp))
+    if not cur.folded:
+        return
+    last = cur.out[-1]
+    final = task.states[-1]
+    via = tuple(task.state(task.transitions[f].to_id).X_EG for f in cur.folded[:-1])
+    cur.out[-1] = replace(
+        last,
+        folded=(*last.folded, *cur.folded),
+        via=(*last.via, last.target.X_EG, *via),
+        target=Target(state=final.id, elements=final.elements, X_EG=final.X_EG),
+    )
