@@ -430,10 +430,11 @@ def test_rigid_motion_of_the_environment_model(
 def test_naive_and_fast_agree_near_contact(
     seed: int, kd: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import apo.contact
+    import apo.contact.model_data
+    import apo.contact.search
 
     if kd:  # force the k-d tree broad phase even for these small models
-        monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+        monkeypatch.setattr(apo.contact.search, "_DENSE_LIMIT", 0)
     rng = np.random.default_rng(seed)
     scenes = list(CONSISTENCY_SCENES.values())
     for k in range(len(scenes)):
@@ -450,10 +451,11 @@ def test_naive_and_fast_agree_near_contact(
 
 
 def test_naive_and_fast_agree_on_a_finer_mesh(monkeypatch: pytest.MonkeyPatch) -> None:
-    import apo.contact
+    import apo.contact.model_data
+    import apo.contact.search
     from apo.shapes import icosphere
 
-    monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+    monkeypatch.setattr(apo.contact.search, "_DENSE_LIMIT", 0)
     ball = icosphere(2, radius=0.05)  # 320 faces, centred on the origin
     plate = transformed(icosphere(2, radius=0.5), pose(t=(0, 0, -0.5)))  # top vertex at 0
     finder = ContactFinder(ball, plate, threshold=2e-3)
@@ -464,7 +466,7 @@ def test_naive_and_fast_agree_on_a_finer_mesh(monkeypatch: pytest.MonkeyPatch) -
     assert [e.kind for e in finder.find(pose(t=(0.0, 0.0, 0.0505))).elements] == [
         ContactKind.VV  # both spheres' poles
     ]
-    assert apo.contact._model_data(plate)._trees is not None  # the k-d tree path ran
+    assert apo.contact.model_data._model_data(plate)._trees is not None  # the k-d tree path ran
 
 
 def test_batch_matches_single() -> None:
@@ -703,10 +705,11 @@ def test_batch_single_and_naive_agree_on_random_poses(
     # a time and the all-pairs search with scalar cone tests find the same states: element
     # keys, touching pairs, ray counts, points and normals, at poses up to ~3 thresholds
     # off a contact (so contacts appear and disappear between frames).
-    import apo.contact
+    import apo.contact.model_data
+    import apo.contact.search
 
     if kd:  # the k-d tree broad phase even for these small models
-        monkeypatch.setattr(apo.contact, "_DENSE_LIMIT", 0)
+        monkeypatch.setattr(apo.contact.search, "_DENSE_LIMIT", 0)
     G, E, X = CONSISTENCY_SCENES[name]()
     d = 3 * default_threshold(G, E)
     poses = _random_poses(G, X, d, 12, seed=sorted(CONSISTENCY_SCENES).index(name))
@@ -720,7 +723,8 @@ def test_batch_single_and_naive_agree_on_random_poses(
 def test_batch_in_blocks_of_frames_and_with_far_frames(monkeypatch: pytest.MonkeyPatch) -> None:
     # Blocks of 3 frames (the block size is a memory bound only) and frames far apart (no
     # overlap of the bounding boxes) give the same states as one block.
-    import apo.contact
+    import apo.contact.model_data
+    import apo.contact.search
 
     G, E, X = CONSISTENCY_SCENES["t_peg_seated"]()
     poses = _random_poses(G, X, 3 * default_threshold(G, E), 10, seed=7)
@@ -728,7 +732,9 @@ def test_batch_in_blocks_of_frames_and_with_far_frames(monkeypatch: pytest.Monke
     finder = ContactFinder(G, E)
     whole = finder.find_batch(poses)
     assert whole[2].elements == () and whole[2].touching == frozenset()
-    monkeypatch.setattr(apo.contact, "_BATCH_PRIMITIVES", 3 * (2 * len(G.vertices) + len(G.edges)))
+    monkeypatch.setattr(
+        apo.contact.search, "_BATCH_PRIMITIVES", 3 * (2 * len(G.vertices) + len(G.edges))
+    )
     _assert_same_states(finder.find_batch(poses), whole)
     _assert_same_states(finder.find_batch(list(poses)), whole)  # a list of 4x4 poses
     assert finder.find_batch(np.zeros((0, 4, 4))) == []

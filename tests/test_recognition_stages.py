@@ -70,3 +70,40 @@ def test_check_scale_names_the_units_when_the_object_is_never_near():
     scene = _scene([1000.0])
     with pytest.raises(InputFormatError, match="units"):
         check_scale(scene.grasped, scene.environment, scene.X, "demo.pose.list")
+
+
+def test_hypotheses_start_with_the_observed_elements_and_are_distinct():
+    from apo.recognition.hypotheses import hypotheses
+
+    scene = _scene([0.0215])  # 1.5 mm above the top face: within the 2 mm threshold
+    observed = scene.finder.find(scene.X[0])
+    hyps = hypotheses(scene, scene.X[0], observed)
+    keys = [frozenset(e.key for e in h) for h in hyps]
+    assert keys[0] == observed.key
+    assert len(set(keys)) == len(keys)
+    # the four subsets of three corners are among them
+    assert sum(len(k) == 3 and k < observed.key for k in keys) == 4
+
+
+def test_rescue_finds_the_four_corner_contacts_of_the_real_state_f(real_data_dir):
+    from apo.io.meshes import load_polyhedron
+    from apo.io.poses import load_demonstration
+    from apo.recognition.hypotheses import rescue
+    from apo.recognition.inputs import default_threshold
+
+    dem = load_demonstration(real_data_dir / "peg_in_hole.pose.list")
+    G = load_polyhedron(dem.grasped_path, units="mm")
+    E = load_polyhedron(dem.environment_path, units="mm")
+    theta = default_threshold(G, E)
+    X = np.asarray(dem.X_EG)
+    scene = Scene(
+        G, E, X, ContactFinder(G, E, threshold=theta), ContactFinder(G, E), SegmentationCosts()
+    )
+    observed = scene.finder.find(X[31])  # two EV, two VV: their correction turns G 10 deg
+    found = rescue(scene, [31], observed)
+    assert found is not None
+    X_r, frame, moved = found
+    state = scene.exact.find(X_r)
+    assert frame == 31 and moved < 8 * theta
+    assert sorted(e.kind.value for e in state.elements) == ["VV"] * 4
+    assert all((e.grasped, e.environment) in state.touching for e in observed.elements)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import base64
 import json
 import re
 from pathlib import Path
@@ -16,9 +15,11 @@ from apo.report.html import (
     MAX_REPLAY_FRAMES,
     pack_array,
     poses_to_rows,
+    read_report_data,
     replay_indices,
     report_data,
     report_html,
+    unpack_array,
 )
 from apo.report.sources import read_frames_csv
 from apo.spatial import pose_from_position_quaternion
@@ -31,23 +32,12 @@ def demo_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _embedded(html: str) -> dict:
-    m = re.search(r'<script type="application/json" id="apo-data">(.*?)</script>', html, re.S)
-    assert m is not None
-    return json.loads(m.group(1))
-
-
-def _unpack(p: dict) -> np.ndarray:
-    raw = base64.b64decode(p["b64"])
-    return np.frombuffer(raw, dtype=np.dtype(p["dtype"]).newbyteorder("<")).reshape(p["shape"])
-
-
 @pytest.mark.parametrize("dtype", ["f4", "f8", "u1", "u2", "u4", "i4"])
 def test_pack_array_round_trip(dtype: str) -> None:
     a = (np.random.default_rng(1).random((5, 3)) * 200).astype(dtype)
     p = pack_array(a, dtype)
     assert p["shape"] == [5, 3]
-    np.testing.assert_array_equal(_unpack(p), a)
+    np.testing.assert_array_equal(unpack_array(p), a)
 
 
 def test_poses_to_rows_round_trip() -> None:
@@ -84,22 +74,22 @@ def test_demo_writes_an_offline_report(demo_dir: Path) -> None:
     assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)\s*=", html, re.I)
     assert "@import" not in html
     assert "plotly.js v" in html[:200_000]
-    data = _embedded(html)
+    data = read_report_data(html)
     task = json.loads((demo_dir / "task.json").read_text())
     assert data["schema"] == "apo.report/1"
     assert data["task"] == task
     frames = data["frames"]
     assert frames["n_frames"] == task["n_frames"]
-    states = _unpack(frames["state"])
+    states = unpack_array(frames["state"])
     ids = [s["id"] for s in task["states"]]
     for k, s in enumerate(task["states"]):
         a, b = s["frames"]
         assert np.all(states[a : b + 1] == k), ids[k]
-    obs = _unpack(frames["observed"])
+    obs = unpack_array(frames["observed"])
     assert obs.shape == (task["n_frames"], 7)
     np.testing.assert_allclose(np.linalg.norm(obs[:, 3:], axis=1), 1.0, atol=1e-5)
     g = data["models"]["grasped"]
-    assert _unpack(g["triangles"]).max() < _unpack(g["vertices"]).shape[0]
+    assert unpack_array(g["triangles"]).max() < unpack_array(g["vertices"]).shape[0]
     assert data["inputs"]["units"] == "mm"
 
 
@@ -119,8 +109,8 @@ def test_report_command_reads_frames_csv_with_poses(demo_dir: Path, tmp_path: Pa
     }
     (tmp_path / "task.json").write_text(json.dumps(doc))
     assert main(["report", str(tmp_path / "task.json")]) == 0
-    data = _embedded((tmp_path / "report.html").read_text())
-    obs = _unpack(data["frames"]["observed"])
+    data = read_report_data((tmp_path / "report.html").read_text())
+    obs = unpack_array(data["frames"]["observed"])
     assert obs.shape == (n, 7)
     np.testing.assert_allclose(obs[:, 0], np.arange(n))
     assert data["models"]["grasped"] is not None
@@ -140,7 +130,7 @@ def test_report_without_models_still_writes(demo_dir: Path, tmp_path: Path, caps
     assert main(["report", str(tmp_path / "task.json"), "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "grasped model not found" in err
-    data = _embedded(out.read_text())
+    data = read_report_data(out.read_text())
     assert data["models"]["grasped"] is None
     assert any("not found" in n for n in data["notes"])
     # without frames.csv, each state's pose is held over its frames

@@ -88,7 +88,13 @@ def analyse(
     for k in ks:
         if an.candidates[k] is None:
             an.candidates[k] = analyse_candidate(
-                scene, obs, k, an.keys[k], observed.states[k], emission[:, k]
+                scene,
+                obs,
+                k,
+                an.keys[k],
+                observed.states[k],
+                emission[:, k],
+                neighbours=[observed.states[j] for j in neighbours(obs, path0, k)],
             )
     done = np.array([c is not None for c in an.candidates])
     labels = np.where(done[obs], obs, path0)
@@ -99,6 +105,20 @@ def analyse(
         assert ci is not None and cj is not None
         an.feasible[i, j] = direct_possible(ci, cj)
         an.tested[i, j] = True
+
+
+def neighbours(obs: IntArray, path0: IntArray, k: int) -> list[int]:
+    """States of ``path0`` just before and after the runs where ``k`` is observed."""
+    out: set[int] = set()
+    for a, b in run_bounds(np.where(obs == k, -1, path0)):
+        if obs[a] != k:
+            continue
+        if a > 0:
+            out.add(int(path0[a - 1]))
+        if b + 1 < len(path0):
+            out.add(int(path0[b + 1]))
+    out.discard(k)
+    return sorted(out)
 
 
 def analyse_needed(

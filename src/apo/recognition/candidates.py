@@ -16,6 +16,7 @@ import numpy as np
 from apo import dof
 from apo.contact import ContactState
 from apo.recognition.correction import correct_poses
+from apo.recognition.hypotheses import rescue
 from apo.recognition.types import CandidateState, FloatArray, IntArray, Scene, StateKey
 from apo.transitions import direct_transition_possible
 
@@ -86,12 +87,16 @@ def analyse_candidate(
     key: StateKey,
     observed: ContactState,
     cost: FloatArray,
+    neighbours: Sequence[ContactState] = (),
     tries: int = 3,
 ) -> CandidateState:
     """Correct the best observed frames of candidate ``k``; analyse it at the first success.
 
     ``labels`` are the observed state of each frame, ``cost`` the candidate's cost at each
-    frame: the ``tries`` cheapest frames where it was observed are corrected.
+    frame: the ``tries`` cheapest frames where it was observed are corrected. If none
+    converges, the other contact hypotheses near those frames are tried
+    (:func:`apo.recognition.hypotheses.rescue`, with the states observed before and after,
+    ``neighbours``); the state is then the one that holds at the rescued pose.
     """
     frames = np.flatnonzero(labels == k)
     best = frames[np.argsort(cost[frames], kind="stable")[:tries]]
@@ -103,6 +108,11 @@ def analyse_candidate(
         f = int(best[i])
         state = state_at(scene.finder, scene.exact, Xb[i], key, observed)
         return CandidateState(key, state, dof_of(state), f, Xb[i].copy(), True, len(frames))
+    found = rescue(scene, [int(f) for f in best], observed, neighbours)
+    if found is not None:
+        X_r, f, _moved = found
+        state = scene.exact.find(X_r)
+        return CandidateState(key, state, dof_of(state), f, X_r, True, len(frames))
     f = int(best[0])
     X0 = scene.X[f].copy()
     return CandidateState(key, observed, dof_of(observed), f, X0, False, len(frames))

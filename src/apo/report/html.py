@@ -50,8 +50,10 @@ __all__ = [
     "pack_array",
     "plotly_js",
     "poses_to_rows",
+    "read_report_data",
     "report_data",
     "report_html",
+    "unpack_array",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -136,6 +138,23 @@ def pack_array(a: npt.ArrayLike, dtype: str) -> dict[str, Any]:
         "shape": list(arr.shape),
         "b64": base64.b64encode(arr.tobytes()).decode("ascii"),
     }
+
+
+def unpack_array(p: Mapping[str, Any]) -> npt.NDArray[Any]:
+    """Inverse of :func:`pack_array`: the array of a ``{"dtype", "shape", "b64"}`` dict."""
+    raw = base64.b64decode(p["b64"])
+    dt = np.dtype(str(p["dtype"])).newbyteorder("<")
+    return np.frombuffer(raw, dtype=dt).reshape([int(v) for v in p["shape"]])
+
+
+def read_report_data(html: str) -> dict[str, Any]:
+    """Return the JSON document embedded in a report page (for tests and tools)."""
+    import re
+
+    m = re.search(r'<script type="application/json" id="apo-data">(.*?)</script>', html, re.S)
+    if m is None:
+        raise ApoError("not an apo report: no embedded apo-data document")
+    return dict(json.loads(m.group(1)))
 
 
 def poses_to_rows(X: npt.ArrayLike, scale: float) -> FloatArray:

@@ -49,19 +49,25 @@ def frames_from_recognition(
     ----------
     rec : Recognition
     X_observed : array_like, shape (N, 4, 4), metres, optional
-        The observed poses the recognition ran on.
+        The observed poses (default: ``rec.X_observed``).
     X_corrected : array_like, shape (N, 4, 4), metres, optional
-        The corrected poses (default: ``rec.X_corrected`` where the recognition keeps them).
+        The corrected poses (default: ``rec.X_corrected``; observed where not converged).
     """
     if X_corrected is None:
-        X_corrected = getattr(rec, "X_corrected", None)
+        X_corrected = rec.X_corrected
     if X_observed is None:
-        X_observed = getattr(rec, "X_observed", None)
+        X_observed = rec.X_observed
+    n = len(rec.state_of_frame)
+
+    def poses(X: npt.ArrayLike | None) -> npt.NDArray[np.float64] | None:
+        a = None if X is None else np.asarray(X, dtype=np.float64)
+        return a if a is not None and a.shape == (n, 4, 4) else None  # (0, 4, 4): not kept
+
     return FrameTrack(
         times=np.asarray(rec.times, dtype=np.float64),
         state_ids=list(rec.state_of_frame),
-        X_observed=None if X_observed is None else np.asarray(X_observed, dtype=np.float64),
-        X_corrected=None if X_corrected is None else np.asarray(X_corrected, dtype=np.float64),
+        X_observed=poses(X_observed),
+        X_corrected=poses(X_corrected),
         residual_before=np.asarray(rec.residual_before, dtype=np.float64),
         residual_after=np.asarray(rec.residual_after, dtype=np.float64),
         converged=np.asarray(rec.converged, dtype=bool),

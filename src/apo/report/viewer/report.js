@@ -411,7 +411,7 @@
     var rejShown = T.rejected.slice().sort(function (a, b) {
       return (b.frames[1] - b.frames[0]) - (a.frames[1] - a.frames[0]);
     }).slice(0, 12);
-    var dy = rejShown.length ? 3.0 : 2.0;
+    var dy = rejShown.length ? 3.3 : 2.0;
     var W = GW, H = GH, DX = 3.3;
     var shapes = [], ann = [];
     var hx = [], hy = [], htext = [], hidx = [];
@@ -450,13 +450,16 @@
                  font: { size: 10, color: col } });
     });
     var perState = {};
+    var placed = 0;
     rejShown.forEach(function (rj) {
       var to = rj.replaced_by.length ? stateIndex[rj.replaced_by[0]] : 0;
       if (to === undefined) { to = 0; }
       var slot = perState[to] = (perState[to] || 0) + 1;
+      if (slot > 2) { return; }  // two per state fit under its box; the table has all
+      placed += 1;
       var base = graphNodes[to];
-      var x = base[0] + (slot - 1) * 0.95 - 0.45, y = base[1] - 1.15;
-      var w = 0.85, h = 0.55;
+      var x = base[0] + (slot - 1) * 1.45 - 0.7, y = base[1] - 1.3;
+      var w = 1.35, h = 0.7;
       shapes.push({ type: 'rect', x0: x - w / 2, x1: x + w / 2, y0: y - h / 2, y1: y + h / 2,
                     fillcolor: '#eceff1', line: { color: '#9e9e9e', width: 1, dash: 'dot' } });
       shapes.push({ type: 'line', x0: x - w / 2, x1: x + w / 2, y0: y - h / 2, y1: y + h / 2,
@@ -465,18 +468,21 @@
                     line: { color: '#c62828', width: 1.5 } });
       shapes.push({ type: 'line', x0: x, x1: base[0], y0: y + h / 2, y1: base[1] - H / 2,
                     line: { color: '#9e9e9e', width: 1, dash: 'dot' } });
-      var reason = rj.reason.length > 22 ? rj.reason.slice(0, 21) + '\u2026' : rj.reason;
-      ann.push({ x: x, y: y, text: 'frames ' + rj.frames[0] + '–' + rj.frames[1] + '<br>' + esc(reason),
-                 showarrow: false, font: { size: 8, color: '#444' } });
+      var reason = rj.reason.length > 44 ? rj.reason.slice(0, 43) + '\u2026' : rj.reason;
+      var cut = reason.lastIndexOf(' ', 24);
+      if (reason.length > 24 && cut > 8) { reason = reason.slice(0, cut) + '\n' + reason.slice(cut + 1); }
+      ann.push({ x: x, y: y, text: '<b>frames ' + rj.frames[0] + '–' + rj.frames[1] + '</b><br>' +
+                 esc(reason).replace('\n', '<br>'), showarrow: false, font: { size: 9, color: '#222' },
+                 bgcolor: 'rgba(255,255,255,0.6)' });
       hx.push(x); hy.push(y); hidx.push(-1);
       htext.push('rejected run, frames ' + rj.frames[0] + '–' + rj.frames[1] + '<br>' +
                  esc(rj.elements.join(', ')) + '<br>replaced by ' + rj.replaced_by.join(', ') +
                  '<br>reason: ' + esc(rj.reason));
     });
-    if (T.rejected.length > rejShown.length) {
+    if (T.rejected.length > placed) {
       ann.push({ xref: 'paper', yref: 'paper', x: 1, y: 0, xanchor: 'right', yanchor: 'top',
                  showarrow: false, font: { size: 10, color: '#666' },
-                 text: (T.rejected.length - rejShown.length) + ' shorter rejected run(s): see the table' });
+                 text: (T.rejected.length - placed) + ' more rejected run(s): see the table' });
     }
     shapes.push({ type: 'rect', x0: -W / 2 - 0.08, x1: W / 2 + 0.08, y0: -H / 2 - 0.08, y1: H / 2 + 0.08,
                   line: { color: '#000', width: 3 }, fillcolor: 'rgba(0,0,0,0)', name: 'current' });

@@ -1,0 +1,314 @@
+"""Distance tests: the features of one model within the threshold of the other's.
+
+The features near each vertex (exact point-vertex, point-segment and point-triangle
+distances, pruned by bounding spheres, or by k-d trees over samples for large models), the
+pairs of edges within the threshold, and every touching (G feature, E feature) pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from apo.contact._arrays import (
+    _EMPTY_F,
+    _EMPTY_I,
+    _dot,
+    _norm,
+    _pairs_from_ball,
+    _sq_dist,
+)
+from apo.contact.elements import Feature
+from apo.contact.model_data import _ModelData
+from apo.geometry import closest_point_on_segment, point_face_distance, segment_segment_closest
+from apo.typing import FloatArray, IntArray
+
+# Bounding-sphere tests use radius * this: rounding never drops a pair within the threshold.
+_SPHERE_MARGIN = 1.0 + 1e-9
+
+
+def _point_triangle_distance(
+    p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
+) -> FloatArray:
+    """Distance from points to triangles, row-wise (Ericson, RTCD 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    bp = p - b
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    cp = p - c
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = va + vb + vc
+        v = np.where(den != 0, vb / den, 0.0)
+        w = np.where(den != 0, vc / den, 0.0)
+        q = a + v[:, None] * ab + w[:, None] * ac
+        wbc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+        q = np.where(m[:, None], b + wbc[:, None] * (c - b), q)
+        wac = d2 / (d2 - d6)
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        q = np.where(m[:, None], a + wac[:, None] * ac, q)
+        m = (d6 >= 0) & (d5 <= d6)
+        q = np.where(m[:, None], c, q)
+        vab = d1 / (d1 - d3)
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        q = np.where(m[:, None], a + vab[:, None] * ab, q)
+        m = (d3 >= 0) & (d4 <= d3)
+        q = np.where(m[:, None], b, q)
+        m = (d1 <= 0) & (d2 <= 0)
+        q = np.where(m[:, None], a, q)
+    return _norm(p - q)
+
+
+@dataclass
+class _Near:
+    """Pairs (query point i, feature j, distance) within the threshold, per feature kind."""
+
+    v: tuple[IntArray, IntArray, FloatArray]
+    e: tuple[IntArray, IntArray, FloatArray]
+    f: tuple[IntArray, IntArray, FloatArray]
+
+
+def _near_features(
+    md: _ModelData,
+    pts: FloatArray,
+    d: float,
+    *,
+    naive: bool = False,
+    dense_limit: int,
+) -> _Near:
+    """Features of ``md`` within ``d`` of each point of ``pts`` (points in md's frame).
+
+    Pairs of each kind are sorted by (point, feature). All pairs are tested when there are
+    at most ``dense_limit`` of them, else the k-d trees prune.
+    """
+    if naive:
+        return _near_features_naive(md, pts, d)
+    inside = np.all((pts >= md.lo - d) & (pts <= md.hi + d), axis=1)
+    rows = np.flatnonzero(inside).astype(np.int64)
+    if len(rows) == 0:
+        e3 = (_EMPTY_I, _EMPTY_I, _EMPTY_F)
+        return _Near(e3, e3, e3)
+    Q = pts[rows]
+    dense = len(Q) * max(md.nv, len(md.TA)) <= dense_limit
+    # vertices
+    if dense:
+        ii, jj = np.nonzero(_sq_dist(Q, md.V) <= (d * _SPHERE_MARGIN) ** 2)
+        dist = _norm(Q[ii] - md.V[jj])
+        ok = dist <= d
+        vv = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
+    else:
+        tv, tt, town, tr, te, eown, er = md.trees()
+        i, j = _pairs_from_ball(tv.query_ball_point(Q, d), np.arange(len(Q)))
+        dist = np.linalg.norm(Q[i] - md.V[j], axis=1)
+        vv = (rows[i], j, dist)
+    # edges (dense: pre-filtered by the edges' bounding spheres)
+    if dense:
+        ii, jj = np.nonzero(_sq_dist(Q, md.E_mid) <= ((md.E_half + d) * _SPHERE_MARGIN) ** 2)
+    else:
+        tv, tt, town, tr, te, eown, er = md.trees()
+        i, s = _pairs_from_ball(te.query_ball_point(Q, d + er), np.arange(len(Q)))
+        key = np.unique(i * md.ne + eown[s])
+        ii, jj = key // md.ne, key % md.ne
+    cl, _ = closest_point_on_segment(Q[ii], md.E0[jj], md.E1[jj])
+    dist = _norm(Q[ii] - cl)
+    ok = dist <= d
+    ee = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
+    # faces via triangles, pre-filtered by the plane distance (and bounding spheres)
+    if dense:
+        near = np.abs(Q @ md.tri_n.T - md.tri_off[None, :]) <= d
+        near &= _sq_dist(Q, md.tri_c) <= ((md.tri_r + d) * _SPHERE_MARGIN) ** 2
+        ii, tt_ = np.nonzero(near)
+    else:
+        tv, tt, town, tr, te, eown, er = md.trees()
+        i, s = _pairs_from_ball(tt.query_ball_point(Q, d + tr), np.arange(len(Q)))
+        nt = len(md.TA)
+        key = np.unique(i * nt + town[s])
+        ii, tt_ = key // nt, key % nt
+        h = np.abs(_dot(Q[ii], md.tri_n[tt_]) - md.tri_off[tt_])
+        keep = h <= d
+        ii, tt_ = ii[keep], tt_[keep]
+    dist = _point_triangle_distance(Q[ii], md.TA[tt_], md.TB[tt_], md.TC[tt_])
+    ok = dist <= d
+    ii, ff, dist = ii[ok], md.tri_face[tt_[ok]], dist[ok]
+    if len(ii):
+        key = ii * md.nf + ff
+        order = np.lexsort((dist, key))
+        key, dist = key[order], dist[order]
+        first = np.concatenate([[True], key[1:] != key[:-1]])
+        key, dist = key[first], dist[first]
+        fff = (rows[key // md.nf], key % md.nf, dist)
+    else:
+        fff = (_EMPTY_I, _EMPTY_I, _EMPTY_F)
+    return _Near(vv, ee, fff)
+
+
+def _near_features_naive(md: _ModelData, pts: FloatArray, d: float) -> _Near:
+    """All-pairs reference: every point against every vertex, edge and face polygon."""
+    n = len(pts)
+    dv = np.linalg.norm(pts[:, None, :] - md.V[None, :, :], axis=2)
+    ii, jj = np.nonzero(dv <= d)
+    vv = (ii.astype(np.int64), jj.astype(np.int64), dv[ii, jj])
+    cl, _ = closest_point_on_segment(pts[:, None, :], md.E0[None], md.E1[None])
+    de = np.linalg.norm(cl - pts[:, None, :], axis=2)
+    ii, jj = np.nonzero(de <= d)
+    ee = (ii.astype(np.int64), jj.astype(np.int64), de[ii, jj])
+    df = np.empty((n, md.nf))
+    for f in range(md.nf):
+        df[:, f] = point_face_distance(md.poly, f, pts)[0]
+    ii, jj = np.nonzero(df <= d)
+    ff = (ii.astype(np.int64), jj.astype(np.int64), df[ii, jj])
+    return _Near(vv, ee, ff)
+
+
+@dataclass
+class _NearF:
+    """Pairs (frame, query point i, feature j, distance) within the threshold, per kind."""
+
+    v: tuple[IntArray, IntArray, IntArray, FloatArray]
+    e: tuple[IntArray, IntArray, IntArray, FloatArray]
+    f: tuple[IntArray, IntArray, IntArray, FloatArray]
+
+
+def _by_frame(near: _Near, n_points: int) -> _NearF:
+    """Split the query rows ``frame * n_points + i`` of ``near`` into (frame, i)."""
+    parts = []
+    for i, j, dist in (near.v, near.e, near.f):
+        f, i = np.divmod(i, n_points)
+        parts.append((f, i, j, dist))
+    return _NearF(*parts)
+
+
+def _edge_pairs(
+    g: _ModelData,
+    e: _ModelData,
+    VG: FloatArray,
+    R: FloatArray,
+    t: FloatArray,
+    d: float,
+    *,
+    naive: bool,
+    limit: int,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """(frame, G edge, E edge) of the edge pairs within d, sorted."""
+    A0 = VG[:, g.edges[:, 0]].reshape(-1, 3)
+    A1 = VG[:, g.edges[:, 1]].reshape(-1, 3)
+    n_rows = len(A0)
+    if naive:  # every pair, in chunks of about a million pairs
+        step = max(1, 1_000_000 // max(e.ne, 1))
+        parts = []
+        for a in range(0, n_rows, step):
+            ca = np.repeat(np.arange(a, min(a + step, n_rows), dtype=np.int64), e.ne)
+            cb = np.tile(np.arange(e.ne, dtype=np.int64), len(ca) // max(e.ne, 1))
+            rr = segment_segment_closest(A0[ca], A1[ca], e.E0[cb], e.E1[cb])
+            m = rr.distance <= d
+            parts.append((ca[m], cb[m]))
+        if not parts:
+            return _EMPTY_I, _EMPTY_I, _EMPTY_I
+        ia, ib = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        return ia // g.ne, ia % g.ne, ib
+    lo = np.minimum(A0, A1) - d
+    hi = np.maximum(A0, A1) + d
+    sel = np.flatnonzero(np.all((hi >= e.lo) & (lo <= e.hi), axis=1))
+    if len(sel) == 0:
+        return _EMPTY_I, _EMPTY_I, _EMPTY_I
+    if len(sel) * e.ne <= 10 * limit:  # box overlaps are cheap
+        eb_lo = np.minimum(e.E0, e.E1)
+        eb_hi = np.maximum(e.E0, e.E1)
+        ov = (hi[sel, None, 0] >= eb_lo[None, :, 0]) & (lo[sel, None, 0] <= eb_hi[None, :, 0])
+        for k in (1, 2):
+            ov &= (hi[sel, None, k] >= eb_lo[None, :, k]) & (lo[sel, None, k] <= eb_hi[None, :, k])
+        ia, ib = np.nonzero(ov)
+        ia = sel[ia]
+    else:
+        _, _, _, _, te, eown, er = e.trees()
+        if g.edge_samples is None:
+            g.trees()
+        assert g.edge_samples is not None
+        gpts, gown, gr = g.edge_samples
+        ias, ibs = [], []
+        for f in np.unique(sel // g.ne).tolist():
+            sel_f = sel[sel // g.ne == f] - f * g.ne
+            keep = np.isin(gown, sel_f)
+            pts = gpts[keep] @ R[f].T + t[f]
+            i, s = _pairs_from_ball(te.query_ball_point(pts, d + er + gr), gown[keep])
+            key = np.unique(i * e.ne + eown[s])
+            ias.append(key // e.ne + f * g.ne)
+            ibs.append(key % e.ne)
+        ia, ib = np.concatenate(ias), np.concatenate(ibs)
+    if len(ia) == 0:
+        return _EMPTY_I, _EMPTY_I, _EMPTY_I
+    r = segment_segment_closest(A0[ia], A1[ia], e.E0[ib], e.E1[ib])
+    ok = r.distance <= d
+    ia, ib = ia[ok].astype(np.int64), ib[ok].astype(np.int64)
+    return ia // g.ne, ia % g.ne, ib
+
+
+def _touching(
+    g: _ModelData,
+    e: _ModelData,
+    near_g: _NearF,
+    near_e: _NearF,
+    ee: tuple[IntArray, IntArray, IntArray],
+    n_frames: int,
+) -> list[frozenset[tuple[Feature, Feature]]]:
+    """Every (G feature, E feature) pair within the threshold, per frame."""
+    # Primitive pairs, encoded as primitive codes (v: i, e: nv + i, f: nv + ne + i).
+    fs: list[IntArray] = []
+    pg: list[IntArray] = []
+    pe: list[IntArray] = []
+    for c, kind in enumerate(("v", "e", "f")):
+        f, i, j, _ = getattr(near_g, kind)
+        fs.append(f)
+        pg.append(i)
+        pe.append(j + e.offset[c])
+        f, i, j, _ = getattr(near_e, kind)
+        fs.append(f)
+        pg.append(j + g.offset[c])
+        pe.append(i)
+    fs.append(ee[0])
+    pg.append(ee[1] + g.nv)
+    pe.append(ee[2] + e.nv)
+    F, P, Qe = np.concatenate(fs), np.concatenate(pg), np.concatenate(pe)
+    if len(P) == 0:
+        return [frozenset()] * n_frames
+    # Frames with the same primitive pairs have the same touching set: expand one of each.
+    same_as = list(range(n_frames))
+    if n_frames > 1:
+        pair = P * e.n_all + Qe
+        order = np.lexsort((pair, F))
+        F, P, Qe, pair = F[order], P[order], Qe[order], pair[order]
+        bounds = np.searchsorted(F, np.arange(n_frames + 1)).tolist()
+        rep_of: dict[bytes, int] = {}
+        keep = np.ones(len(F), dtype=bool)
+        for f in range(n_frames):
+            lo, hi = bounds[f], bounds[f + 1]
+            rep = rep_of.setdefault(pair[lo:hi].tobytes(), f)
+            if rep != f:
+                same_as[f] = rep
+                keep[lo:hi] = False
+        F, P, Qe = F[keep], P[keep], Qe[keep]
+    lp, lq = g.star_len[P], e.star_len[Qe]
+    n = lp * lq
+    k = np.repeat(np.arange(len(P)), n)
+    o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    a = g.star_data[g.star_ptr[P[k]] + o // lq[k]]
+    b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
+    code = np.unique((F[k] * g.n_all + a) * e.n_all + b)
+    fr, code = np.divmod(code, g.n_all * e.n_all)
+    a, b = np.divmod(code, e.n_all)
+    bounds = np.searchsorted(fr, np.arange(n_frames + 1)).tolist()
+    gf, ef = g.features, e.features
+    out: list[frozenset[tuple[Feature, Feature]]] = []
+    for f in range(n_frames):
+        if same_as[f] != f:
+            out.append(out[same_as[f]])
+            continue
+        lo, hi = bounds[f], bounds[f + 1]
+        aa, bb = a[lo:hi].tolist(), b[lo:hi].tolist()
+        out.append(frozenset(zip(map(gf.__getitem__, aa), map(ef.__getitem__, bb), strict=True)))
+    return out

@@ -1,0 +1,336 @@
+"""The batched search: :class:`ContactFinder` and the ``find_contacts*`` functions.
+
+:func:`find_contacts` finds every contact element between the grasped object G and the
+environment object E at one pose; :class:`ContactFinder` caches the per-model data and
+searches a whole sequence of poses at once (:meth:`ContactFinder.find_batch`);
+:func:`find_contacts_naive` is the plain all-pairs reference.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.contact.candidates import _candidates
+from apo.contact.classification import _classify, _elements
+from apo.contact.distance_tests import _by_frame, _edge_pairs, _near_features, _touching
+from apo.contact.elements import ContactState
+from apo.contact.model_data import _model_data, _ModelData
+from apo.contact.separating_normals import _cone_pairs
+from apo.contact.thresholds import (
+    _check_pose,
+    _check_poses,
+    default_angle_tolerance,
+    default_threshold,
+)
+from apo.dof import ContactPoint
+from apo.geometry import Polyhedron
+from apo.typing import FloatArray, IntArray
+
+# Models with more (query points x primitives) than this use the k-d trees.
+_DENSE_LIMIT = 40_000
+# A batch of frames may use this many times more for the dense all-pairs tests.
+_BATCH_DENSE_FACTOR = 8
+# Frames per batch: about this many vertices and edges of both models over the batch.
+_BATCH_PRIMITIVES = 16_384
+
+
+class ContactFinder:
+    """Find contact states of a pair of models at many poses, reusing per-model data.
+
+    Parameters
+    ----------
+    grasped : Polyhedron
+        Grasped object G (model frame G, metres).
+    environment : Polyhedron
+        Environment object E (model frame E, metres).
+    threshold : float, optional
+        Contact distance threshold, metres; default :func:`default_threshold`.
+    angle_tol : float, optional
+        Angular tolerance (rad) of the separating-normal cone intersection and of the
+        parallel-edge test; default :func:`default_angle_tolerance`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from apo.shapes import box
+    >>> table = box([1.0, 1.0, 0.1], center=[0.0, 0.0, -0.05])
+    >>> cube = box([0.1, 0.1, 0.1], center=[0.0, 0.0, 0.05])
+    >>> finder = ContactFinder(cube, table)
+    >>> [e.kind.value for e in finder.find(np.eye(4)).elements]
+    ['VF', 'VF', 'VF', 'VF']
+
+    A whole sequence at once (much faster per frame than one :meth:`find` per pose):
+
+    >>> X = np.stack([np.eye(4), np.eye(4)])
+    >>> X[1, 2, 3] = 0.5  # lifted by 50 cm
+    >>> [len(s.elements) for s in finder.find_batch(X)]
+    [4, 0]
+
+    Notes
+    -----
+    :meth:`find` is :meth:`find_batch` of one pose. Small models are searched in blocks of
+    frames, each stage one numpy pass over the block: broad phase (bounding boxes), the
+    features near each vertex (all pairs pruned by bounding spheres, or k-d trees over
+    samples for large models), the edge pairs, the touching pairs, the snapping, the cone
+    tests of the common cases (a half-space on either side, edge-vertex, edge-edge,
+    vertex-vertex) and the contact points. The rest (nearly parallel lineality, merged rays)
+    goes through the scalar code that :meth:`find_naive` uses for every pair.
+    """
+
+    def __init__(
+        self,
+        grasped: Polyhedron,
+        environment: Polyhedron,
+        *,
+        threshold: float | None = None,
+        angle_tol: float | None = None,
+    ) -> None:
+        if threshold is None:
+            threshold = default_threshold(grasped, environment)
+        threshold = float(threshold)
+        if not (math.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"threshold must be a positive finite length, got {threshold}")
+        if angle_tol is None:
+            angle_tol = default_angle_tolerance(grasped, environment, threshold)
+        angle_tol = float(angle_tol)
+        if not (math.isfinite(angle_tol) and 0 < angle_tol < 0.5):
+            raise ValueError(f"angle_tol must be in (0, 0.5) rad, got {angle_tol}")
+        self.grasped = grasped
+        self.environment = environment
+        self.threshold = threshold
+        self.angle_tol = angle_tol
+        self._g = _model_data(grasped)
+        self._e = _model_data(environment)
+
+    def find(self, X_EG: npt.ArrayLike) -> ContactState:
+        """Contact state at pose ``X_EG`` (4x4, pose of G in E's frame, metres)."""
+        return _find_frames(
+            self._g, self._e, self.threshold, self.angle_tol, _check_pose(X_EG)[None], naive=False
+        )[0]
+
+    def find_batch(self, X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike) -> list[ContactState]:
+        """Contact states at each pose of ``X_EG_seq``, vectorised over the poses.
+
+        Parameters
+        ----------
+        X_EG_seq : array_like, shape (N, 4, 4), or iterable of array_like, shape (4, 4)
+            Poses of G in E's frame, metres.
+
+        Returns
+        -------
+        list of ContactState
+            One per pose, equal to :meth:`find` at that pose (up to rounding of the points
+            and normals). Small models are processed in blocks of frames (each stage is one
+            numpy pass over the block); large ones a few frames at a time.
+
+        Raises
+        ------
+        ValueError
+            A pose is not a finite 4x4 rigid transform (the message gives its index).
+        """
+        X = _check_poses(X_EG_seq)
+        g, e = self._g, self._e
+        step = max(1, _BATCH_PRIMITIVES // (g.nv + e.nv + g.ne))
+        out: list[ContactState] = []
+        for a in range(0, len(X), step):
+            out.extend(
+                _find_frames(
+                    self._g, self._e, self.threshold, self.angle_tol, X[a : a + step], naive=False
+                )
+            )
+        return out
+
+    def find_naive(self, X_EG: npt.ArrayLike) -> ContactState:
+        """Find the state as :meth:`find` does, by an all-pairs search (reference)."""
+        return _find_frames(
+            self._g, self._e, self.threshold, self.angle_tol, _check_pose(X_EG)[None], naive=True
+        )[0]
+
+    # ---------------------------------------------------------------------------------------
+
+
+def _broad_phase(g: _ModelData, e: _ModelData, d: float, X: FloatArray) -> IntArray:
+    """Frames whose bounding boxes (G's transformed conservatively) are within ``d``."""
+    R_all, t_all = X[:, :3, :3], X[:, :3, 3]
+    c = 0.5 * (g.lo + g.hi)
+    r = 0.5 * (g.hi - g.lo)
+    cE = np.einsum("fij,j->fi", R_all, c) + t_all
+    rE = np.einsum("fij,j->fi", np.abs(R_all), r)
+    apart = np.any(cE - rE > e.hi + d, axis=1) | np.any(cE + rE < e.lo - d, axis=1)
+    return np.flatnonzero(~apart)
+
+
+def _piece_pairs(
+    g: _ModelData, e: _ModelData, gcode: IntArray, ecode: IntArray
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Work items: every pair of convex pieces of each candidate pair of features.
+
+    Returns G's piece, E's piece and the candidate of each work item.
+    """
+    gs, gc = g.piece_ranges(gcode)
+    es, ec = e.piece_ranges(ecode)
+    n = gc * ec
+    rep = np.repeat(np.arange(len(n)), n)
+    o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    return gs[rep] + o // ec[rep], es[rep] + o % ec[rep], rep
+
+
+def _find_frames(
+    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray, *, naive: bool
+) -> list[ContactState]:
+    """Contact states at poses ``X`` (F, 4, 4); every stage is vectorised over frames.
+
+    Stages: broad phase (bounding boxes), distance tests (features near each vertex, edge
+    pairs, touching pairs), candidate features, pairs of convex pieces, separating normals,
+    element classification and contact points.
+    """
+    n_frames = len(X)
+    states = [ContactState((), frozenset())] * n_frames
+    active = np.arange(n_frames) if naive else _broad_phase(g, e, d, X)
+    if len(active) == 0:
+        return states
+    R, t = X[active, :3, :3], X[active, :3, 3]
+    n_act = len(active)
+    limit = _DENSE_LIMIT * (_BATCH_DENSE_FACTOR if n_act > 1 else 1)
+    VG = g.V @ R.transpose(0, 2, 1) + t[:, None, :]  # G's vertices in E
+    VE_G = (e.V[None, :, :] - t[:, None, :]) @ R  # E's in G
+    near_g = _by_frame(
+        _near_features(e, VG.reshape(-1, 3), d, naive=naive, dense_limit=limit), g.nv
+    )
+    near_e = _by_frame(
+        _near_features(g, VE_G.reshape(-1, 3), d, naive=naive, dense_limit=limit), e.nv
+    )
+    ee = _edge_pairs(g, e, VG, R, t, d, naive=naive, limit=limit)
+    touching = _touching(g, e, near_g, near_e, ee, n_act)
+    fr, gkind, gcode, ekind, ecode = _candidates(g, e, angle_tol, near_g, near_e, ee, R)
+    pg, pe, rep = _piece_pairs(g, e, gcode, ecode)
+    wfr = fr[rep]
+    count, rays, extra = _cone_pairs(g, e, angle_tol, pg, pe, R[wfr], naive=naive)
+    kind, fa_k, fa_i, fb_k, fb_i = _classify(
+        g, e, pg, pe, gkind[rep], gcode[rep], ekind[rep], ecode[rep]
+    )
+    valid = (kind >= 0) & (count > 0)
+    per_frame = _elements(
+        g,
+        e,
+        3.0 * angle_tol,
+        (wfr, R, t, VG, n_act),
+        (kind, fa_k, fa_i, fb_k, fb_i, valid),
+        (count, rays, extra),
+    )
+    for k, f in enumerate(active.tolist()):
+        states[f] = ContactState(per_frame[k], touching[k])
+    return states
+
+
+def find_contacts(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X_EG: npt.ArrayLike,
+    *,
+    threshold: float | None = None,
+    angle_tol: float | None = None,
+) -> ContactState:
+    """Contact state between G at pose ``X_EG`` and E (paper 4.3.1).
+
+    Parameters
+    ----------
+    grasped : Polyhedron
+        Grasped object G, model frame G, metres.
+    environment : Polyhedron
+        Environment object E, model frame E, metres.
+    X_EG : array_like, shape (4, 4)
+        Pose of G in E's frame (``p_E = X_EG @ p_G``), metres.
+    threshold : float, optional
+        Two features closer than this (metres) touch. Default :func:`default_threshold`
+        (``1e-3`` of the smaller model's bounding diagonal), meant for exact poses; observed
+        poses need a few millimetres.
+    angle_tol : float, optional
+        Angular tolerance (rad) of the normal-cone intersection and of the parallel-edge
+        test; default :func:`default_angle_tolerance`.
+
+    Returns
+    -------
+    ContactState
+        Elements sorted by key (points and normals in E, metres) and every touching
+        feature pair.
+
+    Raises
+    ------
+    ValueError
+        ``X_EG`` is not a finite 4x4 rigid transform, or a bad threshold or tolerance.
+
+    See Also
+    --------
+    ContactFinder : the same with per-model data reused over many poses.
+    find_contacts_naive : all-pairs reference search.
+
+    Notes
+    -----
+    Candidates: each vertex of G within ``threshold`` of E's surface, each vertex of E within
+    ``threshold`` of G's surface, and each non-parallel pair of edges within ``threshold``
+    whose endpoints do not touch the other edge. Each is snapped to the lowest-dimensional
+    feature of each object within the threshold; the local solids there are split into
+    convex pieces and each pair of touching pieces gives an element whose separating normals
+    are the extreme rays of ``T_G* ∩ (-T_E*)`` (``docs/contacts.md``).
+    """
+    finder = ContactFinder(grasped, environment, threshold=threshold, angle_tol=angle_tol)
+    return finder.find(X_EG)
+
+
+def find_contacts_batch(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike,
+    *,
+    threshold: float | None = None,
+    angle_tol: float | None = None,
+) -> list[ContactState]:
+    """Contact states at each pose of ``X_EG_seq`` (N x 4 x 4 poses of G in E, metres).
+
+    Same parameters and result as :func:`find_contacts`, one state per pose; the per-model
+    data (k-d trees, local cones) is computed once and the search is vectorised over the
+    poses (:meth:`ContactFinder.find_batch`).
+    """
+    finder = ContactFinder(grasped, environment, threshold=threshold, angle_tol=angle_tol)
+    return finder.find_batch(X_EG_seq)
+
+
+def find_contacts_naive(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X_EG: npt.ArrayLike,
+    *,
+    threshold: float | None = None,
+    angle_tol: float | None = None,
+) -> ContactState:
+    """Find contacts as :func:`find_contacts` does, by a plain all-pairs search.
+
+    Every vertex is measured against every face polygon of the other model
+    (:func:`apo.geometry.point_face_distance`), every edge and vertex, and every edge against
+    every edge, with no broad phase, and every pair of convex pieces goes through the scalar
+    cone intersection (the fast search solves the common cases vectorised); used to test and
+    benchmark the fast search.
+    """
+    finder = ContactFinder(grasped, environment, threshold=threshold, angle_tol=angle_tol)
+    return finder.find_naive(X_EG)
+
+
+def contact_points(state: ContactState) -> list[ContactPoint]:
+    """Convert the elements of ``state`` to DOF-analysis contact points (frame E, metres).
+
+    Parameters
+    ----------
+    state : ContactState
+        A contact state.
+
+    Returns
+    -------
+    list of apo.dof.ContactPoint
+        One per element, in the state's order, with its point and separating normals.
+    """
+    return [ContactPoint(el.point.copy(), el.normals.copy()) for el in state.elements]
