@@ -21,7 +21,10 @@ import numpy.typing as npt
 from apo.errors import InputFormatError
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from apo.perception.track import TrackResult
+    from apo.symmetry import Symmetry
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
@@ -115,7 +118,10 @@ def write_tracking(
         result.times[keep],
         result.X_EG[keep],
         units=units,
-        extra={"confidence": result.confidence[keep]},
+        extra={
+            "confidence": result.confidence[keep],
+            "reinitialised": result.reinitialised[keep].astype(np.int64),
+        },
     )
     kept = int(keep.sum())
     lost = [int(i) for i in np.nonzero(result.lost)[0]]
@@ -125,14 +131,28 @@ def write_tracking(
         "X_CE": _xyzq(result.X_CE, scale),
         "confidence": round(result.environment_confidence, 4),
         "lost_frames": lost,
+        "reinitialisations": result.reinitialisations,
+        "reinitialised_frames": [int(i) for i in np.nonzero(result.reinitialised)[0]],
+        "symmetries": {
+            "grasped": _symmetry_list(result.grasped_symmetries),
+            "environment": _symmetry_list(result.environment_symmetries),
+        },
     }
     if result.X_WC is not None:
         env["X_WC"] = _xyzq(result.X_WC, scale)
         env["X_WE"] = _xyzq(result.X_WC @ result.X_CE, scale)
     env_path = environment_path(out)
     env_path.write_text(json.dumps(env, indent=2) + "\n", encoding="utf-8")
+    from apo.symmetry import describe_symmetries
+
+    conf = result.confidence[keep]
     print(
-        f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}",
+        f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}\n"
+        f"  re-initialisations: {result.reinitialisations}; confidence median "
+        f"{np.median(conf) if kept else 0.0:.3f}, lowest {conf.min() if kept else 0.0:.3f}; "
+        f"environment {result.environment_confidence:.3f}\n"
+        f"  symmetries: grasped {describe_symmetries(list(result.grasped_symmetries))}, "
+        f"environment {describe_symmetries(list(result.environment_symmetries))}",
         file=file or sys.stdout,
     )
     if lost:
@@ -142,6 +162,17 @@ def write_tracking(
             file=sys.stderr,
         )
     return env_path
+
+
+def _symmetry_list(syms: Sequence[Symmetry]) -> list[dict[str, object]]:
+    """Symmetries as JSON: ``{"axis": [x, y, z], "angle_deg": a}`` (model frame), identity first."""
+    return [
+        {
+            "axis": [round(float(v), 6) for v in s.axis],
+            "angle_deg": round(float(np.degrees(s.angle)), 4),
+        }
+        for s in syms
+    ]
 
 
 @dataclass(frozen=True)
