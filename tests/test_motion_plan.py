@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from apo import synthetic
 from apo.errors import InputFormatError
@@ -360,3 +361,53 @@ def test_trailing_transition_without_subskill_is_folded_into_the_last_primitive(
     assert program.primitives[-1].folded == (len(longer.transitions) - 1,)
     assert program.primitives[-1].target.state == "Z"
     assert program.final_state == "Z"
+
+
+# --------------------------------------------------------------------------------------------
+# Randomised variants, noisy observations
+# --------------------------------------------------------------------------------------------
+
+VARIANTS = {
+    "peg_in_hole_2d": ("tilt_deg", 12.0, 27.0),
+    "square_peg_in_hole": ("yaw_deg", 5.0, 30.0),
+    "block_on_table_to_corner": ("yaw_deg", 8.0, 35.0),
+    "block_tipping": ("tilt_deg", 15.0, 45.0),
+}
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("name", DEMOS)
+def test_randomised_noisy_variants_plan_their_subskills(name: str, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    param, lo, hi = VARIANTS[name]
+    builder = getattr(synthetic, name)
+    demo = builder(**{param: float(rng.uniform(lo, hi))})
+    demo = synthetic.add_noise(demo, sigma_mm=0.3, sigma_deg=0.3, seed=seed)
+    task = recognize(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm")
+    program = plan(task)
+    check_program_structure(task, program)
+    for p in program.primitives:
+        if p.alignment is not None:
+            check_alignment(task, p)
+
+
+def check_alignment(task: TaskModel, p: Primitive) -> None:
+    """After an align, the object matches the entrance in the aligned directions."""
+    a = p.alignment
+    assert a is not None and p.transition is not None
+    b = task.state(task.transitions[p.transition].to_id)
+    X_al, X_b = p.target.X_EG, b.X_EG
+    D = X_b @ np.linalg.inv(X_al)
+    w = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+    assert np.all(np.abs(a.rotations @ w) < 1e-9)
+    c = np.mean([e.point for e in b.elements], axis=0)
+    c_al = (X_al @ np.linalg.inv(X_b) @ np.append(c, 1.0))[:3]
+    assert np.all(np.abs(a.translations @ (c - c_al)) < 1e-9)
+    assert a.translations.shape[0] + a.rotations.shape[0] >= 1
+
+
+def test_real_demonstration_align(real_data_dir: Path) -> None:
+    task = _real_task(str(real_data_dir / "peg_in_hole.pose.list"))
+    (align,) = [p for p in plan(task).primitives if p.kind == PrimitiveKind.ALIGN]
+    check_alignment(task, align)
+    assert align.stop.expected > 0  # the observed pose at the entrance is not aligned

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from apo.dof import ContactPoint, analyze
+from apo.dof import analyze
 from apo.errors import InputFormatError
 from apo.motion.program import (
     Alignment,
@@ -50,7 +50,9 @@ _RANK_TOL = 1e-6
 # --------------------------------------------------------------------------------------------
 
 
-def _unit(v: npt.ArrayLike) -> FloatArray | None:
+def _unit(v: npt.ArrayLike | None) -> FloatArray | None:
+    if v is None:  # a sub-skill direction the analysis could not determine
+        return None
     a = np.asarray(v, dtype=float)
     n = float(np.linalg.norm(a))
     return None if n < _EPS else a / n
@@ -144,7 +146,7 @@ def _constrained(state: State) -> tuple[FloatArray, FloatArray]:
     """Regular constraining subspaces (translation, rotation axes) of a state's contacts."""
     if not state.elements:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    res = analyze([ContactPoint(point=e.point, normals=e.normals) for e in state.elements])
+    res = analyze(state.elements)  # contact elements are DOF-analysis contact points
     g = res.geometry
     return np.asarray(g.translation_constraining), np.asarray(g.rotation_constraining)
 
@@ -367,6 +369,24 @@ def _position_controlled(
     )
 
 
+def _align_rotation(
+    X: FloatArray, X_goal: FloatArray, axes: FloatArray, pivot: FloatArray
+) -> FloatArray:
+    """Turn ``X`` about ``pivot`` until the rotation left to ``X_goal`` has no part on ``axes``.
+
+    Rotations do not commute, so one step by the projected rotation vector leaves a second
+    order residue; a few fixed-point steps remove it (to 1e-12 rad).
+    """
+    for _ in range(50):
+        w = _rotvec(X, X_goal)
+        w_a = axes.T @ (axes @ w) if axes.shape[0] else np.zeros(3)
+        angle = float(np.linalg.norm(w_a))
+        if angle < 1e-13:
+            break
+        X = _rotate_about(X, w_a / angle, pivot, angle)
+    return X
+
+
 def _align_primitive(task: TaskModel, i: int, X_start: FloatArray, pp: PlanParameters) -> Primitive:
     """``align`` before critical transition ``i``: match its target pose where it constrains."""
     tr = task.transitions[i]
@@ -378,10 +398,7 @@ def _align_primitive(task: TaskModel, i: int, X_start: FloatArray, pp: PlanParam
     ref = b.X_EG[:3, 3].copy() if c is None else c
     # where the entrance point of G is now, then turn about it and move it in T only
     here = _moved(X_start, b.X_EG, ref)
-    w = _rotvec(X_start, b.X_EG)
-    w_a = Rr.T @ (Rr @ w) if Rr.shape[0] else np.zeros(3)
-    angle = float(np.linalg.norm(w_a))
-    X = X_start if angle < _EPS else _rotate_about(X_start, w_a / angle, here, angle)
+    X = _align_rotation(X_start, b.X_EG, Rr, here)
     shift = T.T @ (T @ (ref - here)) if T.shape[0] else np.zeros(3)
     X = _translate(X, shift)
     pts = np.array([e.point for e in b.elements]) if b.elements else np.zeros((1, 3))
