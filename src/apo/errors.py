@@ -17,3 +17,7 @@ class GeometryError(ApoError, ValueError):
 
 class TrackingLostError(ApoError, RuntimeError):
     """Perception lost an object and could not recover it."""
+
+
+class OutputError(ApoError, OSError):
+    """An output destination is unusable (a file, not writable, held by another writer)."""

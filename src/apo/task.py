@@ -20,8 +20,10 @@ from typing import Any, Literal, cast
 import numpy as np
 import numpy.typing as npt
 
+from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
 from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
+from apo.transitions import SubSkill, SubSkillKind
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -60,35 +62,15 @@ DOF_KINDS = ("M", "D", "C", "SM", "SD", "SC")
 SPACES = ("translation", "rotation")
 
 Space = Literal["translation", "rotation"]
-Feature = tuple[str, int]
 
 
-@dataclass(frozen=True)
-class Element:
-    """One contact element of a state (environment frame, metres).
+Element = ContactElement
+"""A contact element of a state: :class:`apo.contact.ContactElement` (one type everywhere).
 
-    Attributes
-    ----------
-    kind : str
-        One of ``KINDS``.
-    grasped, environment : tuple of (str, int)
-        Feature ids ``("v" | "e" | "f", index)`` in the two models.
-    point : ndarray, shape (3,)
-        Contact point, metres, environment frame.
-    normals : ndarray, shape (M, 3)
-        Unit separating normals, from the environment towards the grasped object.
-    """
-
-    kind: str
-    grasped: Feature
-    environment: Feature
-    point: FloatArray
-    normals: FloatArray
-
-    @property
-    def singular(self) -> bool:
-        """True if the element has more than one separating normal."""
-        return int(self.normals.shape[0]) > 1
+``kind`` is a :class:`apo.contact.ContactKind` (a ``str`` enum equal to one of ``KINDS``);
+``grasped``, ``environment`` feature ids ``("v" | "e" | "f", index)``; ``point`` (3,) and
+``normals`` (M, 3) in the environment frame, metres, normals from E towards G.
+"""
 
 
 @dataclass(frozen=True)
@@ -132,43 +114,6 @@ class State:
     pose_frame: int | None = None
     pose_converged: bool = True
     same_as: str | None = None
-
-
-@dataclass(frozen=True)
-class SubSkill:
-    """A sub-skill assigned to a transition (paper section 3.5).
-
-    Attributes
-    ----------
-    kind : str
-        ``"push_to"``, ``"release"`` or ``"slide"``.
-    space : str
-        ``"translation"`` or ``"rotation"``.
-    type : str or None
-        ``"I"`` or ``"II"`` for a rotational push-to, else None.
-    direction : ndarray, shape (3,)
-        Unit direction (translation) or rotation axis (rotation), environment frame; zeros
-        when the transition does not fix one.
-    point : ndarray, shape (3,), metres, or None
-        Rotation only: a point on the rotation axis (the one closest to the origin of the
-        environment frame); None for translation or when not determined.
-    source : str
-        What fixed ``direction``: ``"contacts"`` (separating normals of the elements that
-        appear or disappear), ``"detaching_direction"``, ``"poses"`` (the observed
-        displacement) or ``"none"``.
-    subspace : ndarray, shape (k, 3)
-        Orthonormal rows spanning every direction (translation) or axis (rotation) the
-        sub-skill acts in, sign-free; ``direction`` lies in it. ``k`` is the number of unit
-        DOF transitions behind the sub-skill (two for a slide that frees two rotations).
-    """
-
-    kind: str
-    space: str
-    type: str | None
-    direction: FloatArray
-    point: FloatArray | None = None
-    source: str = "none"
-    subspace: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -387,7 +332,7 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
                     "kind": u.kind,
                     "space": u.space,
                     "type": u.type,
-                    "direction": _vec(u.direction),
+                    "direction": _vec(np.zeros(3) if u.direction is None else u.direction),
                     "point": None if u.point is None else _vec(u.point, k),
                     "source": u.source,
                     "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
@@ -658,7 +603,9 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
             typ = ud.get("type")
             subs.append(
                 SubSkill(
-                    kind=rd.string(rd.get(ud, "kind", wu), f"{wu}.kind", SUBSKILL_KINDS),
+                    kind=SubSkillKind(
+                        rd.string(rd.get(ud, "kind", wu), f"{wu}.kind", SUBSKILL_KINDS)
+                    ),
                     space=rd.string(rd.get(ud, "space", wu), f"{wu}.space", SPACES),
                     type=None if typ is None else rd.string(typ, f"{wu}.type", ("I", "II")),
                     direction=rd.vector(ud.get("direction", [0, 0, 0]), f"{wu}.direction", 3),

@@ -16,7 +16,6 @@ are recognised instead of noisy copies of the truth.
 from __future__ import annotations
 
 import argparse
-import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,9 +23,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from apo.errors import InputFormatError
+from apo.outputs import OutputSet
+from apo.report.writer import PlotWorker, model_ref_as, report_maker, write_recognition
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
+    from apo.recognition import Recognition
 
 DEFAULT_OUT = "apo-demo"
 DEFAULT_NOISE_MM = 0.5
@@ -108,7 +110,7 @@ class DemoInput:
 
 def _write_stl(poly: Polyhedron, path: Path, scale: float) -> None:
     """Write ``poly``'s face triangulation as binary STL, lengths multiplied by ``scale``."""
-    from apo.cli.analyze import atomic_path
+    from apo.outputs import atomic_file
 
     tris = np.concatenate(poly.face_triangles)
     fidx = np.concatenate([np.full(len(t), f) for f, t in enumerate(poly.face_triangles)])
@@ -119,23 +121,28 @@ def _write_stl(poly: Polyhedron, path: Path, scale: float) -> None:
     rec["n"] = poly.face_normals[fidx]
     rec["v"] = poly.vertices[tris] * scale
     header = f"apo {poly.name}".encode().ljust(80, b" ")[:80]
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_file(path) as tmp, open(tmp, "wb") as fh:
         fh.write(header)
         fh.write(np.uint32(len(tris)).tobytes())
         fh.write(rec.tobytes())
 
 
-def demonstration_from_args(args: argparse.Namespace) -> DemoInput:
-    """Return the demonstration the arguments ask for (the built-in example by default)."""
+def demonstration_from_args(args: argparse.Namespace, outs: OutputSet | None = None) -> DemoInput:
+    """Return the demonstration the arguments ask for (the built-in example by default).
+
+    ``--from-frames`` writes its frames and tracked poses into ``outs`` (required then).
+    """
     if getattr(args, "from_frames", False):
-        return _demonstration_from_frames(args)
+        if outs is None:
+            raise ValueError("--from-frames writes into an output set: pass outs")
+        return _demonstration_from_frames(args, outs)
     for flag, given in (
         ("--resolution", getattr(args, "resolution", DEFAULT_RESOLUTION) != DEFAULT_RESOLUTION),
         ("--depth-noise", getattr(args, "depth_noise", None) is not None),
     ):
         if given:
             raise InputFormatError(f"{flag} applies to --from-frames only")
-    synthetic = importlib.import_module("apo.synthetic")
+    from apo import synthetic
 
     for flag, v in (("--noise-mm", args.noise_mm), ("--noise-deg", args.noise_deg)):
         if v is not None and not (np.isfinite(v) and v >= 0):
@@ -167,7 +174,7 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _demonstration_from_frames(args: argparse.Namespace) -> DemoInput:
+def _demonstration_from_frames(args: argparse.Namespace, outs: OutputSet) -> DemoInput:
     """Render the example's true poses, track the frames, return the tracked poses."""
     import sys
 
@@ -181,15 +188,14 @@ def _demonstration_from_frames(args: argparse.Namespace) -> DemoInput:
     if not (np.isfinite(sigma_mm) and sigma_mm >= 0):
         raise InputFormatError(f"--depth-noise must be a non-negative number, got {sigma_mm}")
     width, height = _resolution(args.resolution)
-    from apo.cli.track import write_tracking
+    from apo.cli.track import write_tracking_into
     from apo.perception.example import render_builtin
     from apo.perception.render import DepthNoise
     from apo.perception.track import track_frames
 
-    out = Path(args.out)
-    print(f"rendering the example into {out / 'frames'} ...", file=sys.stderr)
+    print(f"rendering the example into {outs.final('frames')} ...", file=sys.stderr)
     r = render_builtin(
-        out / "frames",
+        outs.path("frames"),
         width=width,
         height=height,
         noise=DepthNoise(sigma_1m=sigma_mm * 1e-3),
@@ -200,7 +206,7 @@ def _demonstration_from_frames(args: argparse.Namespace) -> DemoInput:
     result = track_frames(
         r.frames, r.grasped, r.environment, units="m", init_grasped=r.X_CG0, init_environment=r.X_CE
     )
-    write_tracking(result, out / "poses.csv", "mm", file=sys.stderr)
+    write_tracking_into(outs, result, "mm")
     keep = ~result.lost
     return DemoInput(
         grasped=r.demo.grasped,
@@ -214,24 +220,26 @@ def _demonstration_from_frames(args: argparse.Namespace) -> DemoInput:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo demo``; return the exit code."""
-    from apo.cli.analyze import PlotWorker
+    from apo.cli.analyze import report
 
     worker = None if args.no_plot else PlotWorker()
     try:
-        return _run(args, worker)
+        with OutputSet(args.out, label="--out") as outs:  # checked and locked before the work
+            rec, written = _run(args, outs, worker)
     finally:
         if worker is not None:
             worker.close()
+    report(rec, written, as_json=args.json)
+    return 0
 
 
-def _run(args: argparse.Namespace, worker: Any) -> int:
-    from apo.cli.analyze import model_ref, report, report_maker, write_outputs
+def _run(
+    args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None
+) -> tuple[Recognition, dict[str, Path]]:
     from apo.recognition import recognize_frames
 
-    out = Path(args.out)
-    dem = demonstration_from_args(args)
-    out.mkdir(parents=True, exist_ok=True)
-    gpath, epath = out / "grasped.stl", out / "environment.stl"
+    dem = demonstration_from_args(args, outs)
+    gpath, epath = outs.path("grasped.stl"), outs.path("environment.stl")
     _write_stl(dem.grasped, gpath, 1000.0)
     _write_stl(dem.environment, epath, 1000.0)
     rec = recognize_frames(
@@ -241,14 +249,14 @@ def _run(args: argparse.Namespace, worker: Any) -> int:
         dem.X_EG,
         units="mm",
         models=(
-            model_ref(gpath, out, dem.grasped.name),
-            model_ref(epath, out, dem.environment.name),
+            model_ref_as(gpath, outs.final("grasped.stl"), outs.given, dem.grasped.name),
+            model_ref_as(epath, outs.final("environment.stl"), outs.given, dem.environment.name),
         ),
         source=dem.source,
     )
-    written = write_outputs(
+    written = write_recognition(
+        outs,
         rec,
-        out,
         plot=not args.no_plot,
         title=f"DOF indices: {dem.source}",
         worker=worker,
@@ -256,5 +264,4 @@ def _run(args: argparse.Namespace, worker: Any) -> int:
         if args.no_report
         else report_maker(rec, dem.grasped, dem.environment, dem.X_EG, []),
     )
-    report(rec, written, as_json=args.json)
-    return 0
+    return rec, written

@@ -21,6 +21,7 @@ import numpy.typing as npt
 from apo.errors import InputFormatError
 
 if TYPE_CHECKING:
+    from apo.outputs import OutputSet
     from apo.perception.track import TrackResult
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
@@ -97,18 +98,41 @@ def track_from_args(
     )
 
 
+def environment_json(result: TrackResult, units: str) -> dict[str, object]:
+    """Return the content of ``<OUT stem>.environment.json`` (environment in the camera frame)."""
+    scale = UNITS[units]
+    env: dict[str, object] = {
+        "frame": "camera",
+        "units": units,
+        "X_CE": _xyzq(result.X_CE, scale),
+        "confidence": round(result.environment_confidence, 4),
+        "lost_frames": [int(i) for i in np.nonzero(result.lost)[0]],
+    }
+    if result.X_WC is not None:
+        env["X_WC"] = _xyzq(result.X_WC, scale)
+        env["X_WE"] = _xyzq(result.X_WC @ result.X_CE, scale)
+    return env
+
+
 def write_tracking(
-    result: TrackResult, out: Path, units: str, *, file: TextIO | None = None
+    result: TrackResult,
+    out: Path,
+    units: str,
+    *,
+    file: TextIO | None = None,
+    env_out: Path | None = None,
+    shown: Path | None = None,
 ) -> Path:
     """Write the pose CSV ``out`` and the environment JSON beside it; report on ``file``.
 
     ``file`` (default stdout) gets the one-line summary; lost frames are reported on stderr.
-    Returns the path of the environment JSON.
+    ``env_out`` is where to write the JSON (default beside ``out``); ``shown`` is the path
+    to print for ``out`` (where it will be once an output set commits). Returns the path of
+    the environment JSON as shown.
     """
     from apo.io.poses import write_pose_csv
 
-    scale = UNITS[units]
-    out.parent.mkdir(parents=True, exist_ok=True)
+    shown = shown or out
     keep = ~result.lost
     write_pose_csv(
         out,
@@ -119,25 +143,18 @@ def write_tracking(
     )
     kept = int(keep.sum())
     lost = [int(i) for i in np.nonzero(result.lost)[0]]
-    env: dict[str, object] = {
-        "frame": "camera",
-        "units": units,
-        "X_CE": _xyzq(result.X_CE, scale),
-        "confidence": round(result.environment_confidence, 4),
-        "lost_frames": lost,
-    }
-    if result.X_WC is not None:
-        env["X_WC"] = _xyzq(result.X_WC, scale)
-        env["X_WE"] = _xyzq(result.X_WC @ result.X_CE, scale)
-    env_path = environment_path(out)
-    env_path.write_text(json.dumps(env, indent=2) + "\n", encoding="utf-8")
+    env = environment_json(result, units)
+    (env_out or environment_path(out)).write_text(
+        json.dumps(env, indent=2) + "\n", encoding="utf-8"
+    )
+    env_path = environment_path(shown)
     print(
-        f"{kept} of {len(result.times)} frames tracked -> {out}; environment -> {env_path}",
+        f"{kept} of {len(result.times)} frames tracked -> {shown}; environment -> {env_path}",
         file=file or sys.stdout,
     )
     if lost:
         print(
-            f"warning: {len(lost)} frame(s) lost and left out of {out}: {lost[:20]}"
+            f"warning: {len(lost)} frame(s) lost and left out of {shown}: {lost[:20]}"
             + (" ..." if len(lost) > 20 else ""),
             file=sys.stderr,
         )
@@ -171,18 +188,26 @@ def demonstration_from_frames(
     frames: str | Path,
     grasped: str | Path,
     environment: str | Path,
-    out_dir: Path,
+    outs: OutputSet,
 ) -> TrackedDemonstration:
     """Track a frames folder for ``apo analyze FRAMES`` / ``apo demo --from-frames``.
 
-    Writes ``out_dir/poses.csv`` and ``out_dir/poses.environment.json`` (as ``apo track``),
-    reports on stderr (stdout may carry ``--json``), and returns the tracked poses.
+    Writes ``poses.csv`` and ``poses.environment.json`` (as ``apo track``) into the output
+    set ``outs``, reports on stderr (stdout may carry ``--json``), and returns the tracked
+    poses.
     """
     result = track_from_args(args, frames, grasped, environment)
     units = args.units or "mm"
-    write_tracking(result, out_dir / "poses.csv", units, file=sys.stderr)
+    write_tracking_into(outs, result, units)
     keep = ~result.lost
     return TrackedDemonstration(result.times[keep], result.X_EG[keep], units, result)
+
+
+def write_tracking_into(outs: OutputSet, result: TrackResult, units: str) -> None:
+    """Write ``poses.csv`` and ``poses.environment.json`` into ``outs``; report on stderr."""
+    write_tracking(
+        result, outs.path("poses.csv"), units, file=sys.stderr, shown=outs.final("poses.csv")
+    )
 
 
 def reject_tracking_options(args: argparse.Namespace, demo: Path) -> None:
@@ -197,8 +222,12 @@ def reject_tracking_options(args: argparse.Namespace, demo: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo track``."""
-    result = track_from_args(args, args.frames, args.grasped, args.environment)
-    write_tracking(result, Path(args.out), args.units)
+    from apo.outputs import output_files
+
+    out = Path(args.out)
+    with output_files([out, environment_path(out)], label="--out") as (csv_tmp, env_tmp):
+        result = track_from_args(args, args.frames, args.grasped, args.environment)
+        write_tracking(result, csv_tmp, args.units, env_out=env_tmp, shown=out)
     return 0
 
 

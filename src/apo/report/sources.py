@@ -10,7 +10,6 @@ observed poses to :func:`frames_from_recognition`; ``apo report task.json`` read
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError, InputFormatError
+from apo.outputs import sha256_file
 from apo.report.html import FrameTrack
 
 if TYPE_CHECKING:
@@ -157,15 +157,6 @@ def read_frames_csv(path: str | Path, *, units: str) -> FrameTrack:
         repaired=None if rep is None else rep != 0,
         source=p.name,
     )
-
-
-def sha256_file(path: str | Path) -> str:
-    """Return the hex SHA-256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 16), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def file_entry(

@@ -1,0 +1,240 @@
+"""The files of a recognised demonstration, written into an :class:`~apo.outputs.OutputSet`.
+
+``task.json`` (:func:`apo.task.task_to_dict`), ``frames.csv`` (:func:`frames_csv`), ``dof.png``
+(:func:`apo.report.plot.plot_dof`, drawn by a :class:`PlotWorker` while the rest is written)
+and ``report.html`` (a callable, e.g. :func:`report_maker`). ``apo analyze`` and ``apo demo``
+call :func:`write_recognition`; any program using the library can do the same::
+
+    with OutputSet("out") as outs:
+        rec = recognize_frames(G, E, times, X_EG, units="mm")
+        written = write_recognition(outs, rec)
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from apo.outputs import sha256_file as sha256_of
+
+if TYPE_CHECKING:
+    from apo.geometry import Polyhedron
+    from apo.outputs import OutputSet
+    from apo.recognition import Recognition
+    from apo.task import ModelRef
+
+__all__ = [
+    "PlotWorker",
+    "frames_csv",
+    "model_ref",
+    "model_ref_as",
+    "report_maker",
+    "sha256_of",
+    "write_recognition",
+]
+
+
+def model_ref(path: str | Path, out_dir: Path, name: str = "") -> ModelRef:
+    """Return a ModelRef: path relative to ``out_dir`` when possible, and content hash."""
+    from apo.task import ModelRef
+
+    p = Path(path).resolve()
+    try:
+        rel = os.path.relpath(p, out_dir.resolve())
+    except ValueError:  # different drives
+        rel = str(p)
+    return ModelRef(path=rel, sha256=sha256_of(p), name=name or p.name)
+
+
+def model_ref_as(content: str | Path, path: str | Path, out_dir: Path, name: str = "") -> ModelRef:
+    """Like :func:`model_ref` for a file that is at ``content`` now and will be at ``path``.
+
+    For models written into an :class:`~apo.outputs.OutputSet`: hashed where they are written,
+    referred to where they will be once the set is committed.
+    """
+    from apo.task import ModelRef
+
+    p = Path(os.path.abspath(path))
+    try:
+        rel = os.path.relpath(p, Path(os.path.abspath(out_dir)))
+    except ValueError:  # different drives
+        rel = str(p)
+    return ModelRef(path=rel, sha256=sha256_of(content), name=name or p.name)
+
+
+class PlotWorker:
+    """Draw ``dof.png`` in a forked process that imports matplotlib while the parent works.
+
+    On a machine with two cores this hides matplotlib's import time (about a third of a
+    second) behind the recognition. Where ``os.fork`` is missing, or ``APO_PLOT_WORKER=0``,
+    or the worker fails, the plot is drawn in-process instead. The worker writes the path it
+    is given (inside an output set's private folder), with the process's umask.
+    """
+
+    def __init__(self) -> None:
+        self.pid: int | None = None
+        self.wfd: int | None = None
+        if not hasattr(os, "fork") or os.environ.get("APO_PLOT_WORKER", "1") == "0":
+            return
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child
+            os.close(w)
+            os._exit(_plot_child(r))
+        os.close(r)
+        self.pid, self.wfd = pid, w
+
+    def plot(self, rec: Recognition, path: Path, title: str | None) -> bool:
+        """Hand the plot to the worker and wait for it; return True if it wrote ``path``."""
+        return self.submit(rec, path, title) and self.result(path)
+
+    def submit(self, rec: Recognition, path: Path, title: str | None) -> bool:
+        """Hand the plot to the worker without waiting; False if there is no worker."""
+        if self.pid is None or self.wfd is None:
+            return False
+        import pickle
+
+        try:
+            with os.fdopen(self.wfd, "wb") as fh:
+                self.wfd = None
+                fh.write(pickle.dumps((rec.task, rec.times, str(path), title)))
+        except OSError:
+            pass
+        return True
+
+    def result(self, path: Path) -> bool:
+        """Wait for a submitted plot; return True if the worker wrote ``path``."""
+        return self._wait() and path.exists()
+
+    def close(self) -> None:
+        """Release the worker without a plot."""
+        if self.wfd is not None:
+            os.close(self.wfd)
+            self.wfd = None
+        self._wait()
+
+    def _wait(self) -> bool:
+        if self.pid is None:
+            return False
+        _, status = os.waitpid(self.pid, 0)
+        self.pid = None
+        return os.waitstatus_to_exitcode(status) == 0
+
+
+def _plot_child(r: int) -> int:  # pragma: no cover - runs in the forked child
+    """Import matplotlib, wait for a pickled plot request on ``r``, draw it; the exit code."""
+    try:
+        import pickle
+
+        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+        from matplotlib.figure import Figure  # noqa: F401
+
+        from apo.report.plot import plot_dof  # and apo.task, for unpickling
+
+        with os.fdopen(r, "rb") as fh:
+            data = fh.read()
+        if data:
+            task, times, path, title = pickle.loads(data)
+            plot_dof(task, path, times=times, title=title)  # redrawn by the parent on failure
+        return 0
+    except BaseException:
+        return 1
+
+
+def _pose_columns(X: np.ndarray, k: float) -> np.ndarray:
+    """``(N, 7)`` array: position times ``k``, quaternion ``(qw, qx, qy, qz)`` with qw >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    xyzw = Rotation.from_matrix(X[:, :3, :3]).as_quat()
+    q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    q[q[:, 0] < 0] *= -1.0
+    return np.concatenate([X[:, :3, 3] * k, q], axis=1)
+
+
+_POSE_FMT = ",{:.9g}" * 14
+
+
+def frames_csv(rec: Recognition) -> str:
+    """Per-frame diagnostics as CSV text (lengths in the task's units).
+
+    Columns: ``frame, time_s, state, observed, residual_before_<u>, residual_after_<u>,
+    converged, repaired``, then, when the recognition keeps its poses, the observed and the
+    corrected pose ``obs_x_<u>, obs_y_<u>, obs_z_<u>, obs_qw, obs_qx, obs_qy, obs_qz,
+    cor_x_<u> .. cor_qz`` (quaternions wxyz, ``qw >= 0``; ``<u>`` = the task's units).
+    """
+    from apo.task import UNITS
+
+    u = rec.task.units
+    k = 1.0 / UNITS[u]
+    n = len(rec.state_of_frame)
+    head = f"frame,time_s,state,observed,residual_before_{u},residual_after_{u},converged,repaired"
+    Xo = np.asarray(getattr(rec, "X_observed", np.zeros((0, 4, 4))), dtype=np.float64)
+    Xc = np.asarray(getattr(rec, "X_corrected", np.zeros((0, 4, 4))), dtype=np.float64)
+    poses = n > 0 and Xo.shape == (n, 4, 4) and Xc.shape == (n, 4, 4)
+    if poses:
+        for p in ("obs", "cor"):
+            head += "".join(f",{p}_{c}_{u}" for c in "xyz") + "".join(f",{p}_q{c}" for c in "wxyz")
+        both = np.concatenate([_pose_columns(Xo, k), _pose_columns(Xc, k)], axis=1).tolist()
+    lines = [head]
+    for i, sid in enumerate(rec.state_of_frame):
+        line = (
+            f"{i},{rec.times[i]:.6f},{sid},{int(rec.observed[i])},"
+            f"{rec.residual_before[i] * k:.6g},{rec.residual_after[i] * k:.6g},"
+            f"{int(rec.converged[i])},{int(rec.repaired[i])}"
+        )
+        if poses:
+            line += _POSE_FMT.format(*both[i])
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def write_recognition(
+    outs: OutputSet,
+    rec: Recognition,
+    *,
+    plot: bool = True,
+    title: str | None = None,
+    worker: PlotWorker | None = None,
+    report: Callable[[], str] | None = None,
+) -> dict[str, Path]:
+    """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) into ``outs``.
+
+    ``report`` returns the text of ``report.html`` (see :func:`report_maker`); ``worker``
+    draws the plot while this process writes the rest. Returns ``{what: final path}``
+    (``task``, ``frames``, ``plot``, ``report``); the files appear there when ``outs`` commits.
+    """
+    from apo.task import task_to_dict
+
+    written: dict[str, Path] = {}
+    want_plot = plot and bool(rec.task.states)
+    png = outs.path("dof.png")
+    submitted = want_plot and worker is not None and worker.submit(rec, png, title)
+    written["task"] = outs.write_json("task.json", task_to_dict(rec.task))
+    written["frames"] = outs.write_text("frames.csv", frames_csv(rec))
+    if want_plot:
+        if not (submitted and worker is not None and worker.result(png)):
+            from apo.report.plot import plot_dof
+
+            plot_dof(rec.task, png, times=rec.times, title=title)
+        written["plot"] = outs.final("dof.png")
+    if report is not None:
+        written["report"] = outs.write_text("report.html", report())
+    return written
+
+
+def report_maker(
+    rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
+) -> Callable[[], str]:
+    """Return a callable that renders ``report.html`` of ``rec`` (inputs: files to hash)."""
+
+    def make() -> str:
+        from apo.report.sources import file_entry, recognition_report
+
+        files = [file_entry("demonstration", p) for p in inputs if p.is_file()]
+        return recognition_report(rec, grasped=G, environment=E, X_observed=X_observed, files=files)
+
+    return make
