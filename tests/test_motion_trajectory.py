@@ -180,7 +180,7 @@ def test_apo_plan_defaults_to_the_task_folder_and_takes_options(
         ("garbled", r"task\.json: not valid JSON: .* line 1"),
         ("schema", r"task\.json: schema: expected 'apo\.task/1'"),
         ("no_model", r"task\.json: models\.grasped\.path: model file not found"),
-        ("out_is_file", r"--out exists and is not a folder"),
+        ("out_is_file", r"--out .*out.* is a file, not a folder"),
         ("bad_option", r"--standoff must be positive"),
     ],
 )
