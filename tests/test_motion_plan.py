@@ -186,6 +186,24 @@ def test_approach_stops_at_the_standoff(name: str) -> None:
     assert first.stop.travel == pytest.approx(pp.standoff + pp.travel_margin)
 
 
+@pytest.mark.parametrize("name", DEMOS)
+def test_approach_crosses_over_above_start_and_standoff(name: str) -> None:
+    program = plan(_task(name))
+    approach, first = program.primitives[0], program.primitives[1]
+    up = -first.direction
+    legs = [program.start_X_EG, *approach.via, approach.target.X_EG]
+    levels = [float(up @ X[:3, 3]) for X in legs]
+    top = max(levels)
+    # rise (or stay), cross at the top level, then come straight down to the stand-off
+    assert all(lv == pytest.approx(top) for lv in levels[1:-1])
+    assert top >= levels[0] - 1e-12 and top >= levels[-1] - 1e-12
+    if approach.via:
+        np.testing.assert_allclose(approach.via[-1][:3, :3], legs[-1][:3, :3], atol=1e-12)
+        drop = legs[-1][:3, 3] - approach.via[-1][:3, 3]
+        np.testing.assert_allclose(drop, np.linalg.norm(drop) * first.direction, atol=1e-12)
+    np.testing.assert_allclose(approach.direction, first.direction, atol=1e-9)
+
+
 def test_align_directions_are_the_newly_constrained_ones() -> None:
     task = _task("square_peg_in_hole")
     program = plan(task, parameters=PlanParameters(clearance=0.0001))

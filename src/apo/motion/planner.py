@@ -13,6 +13,7 @@ SI units and the environment frame throughout; no simulator and no I/O here.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -420,22 +421,57 @@ def _approach(
     s0 = task.states[0]
     X0 = s0.X_EG
     X_goal = X0
+    via: tuple[FloatArray, ...] = ()
     if first is not None and not s0.elements:
         tr = task.transitions[first]
         b = task.state(tr.to_id)
-        c = _centroid(b.elements)
+        c = _centroid(_new(s0, b))
         ref = b.X_EG[:3, 3] if c is None else c
         X_first = _intermediate_poses(X0, b.X_EG, tr.subskills, ref)[0]
         u0 = tr.subskills[0]
         d = _unit(u0.direction) if u0.space == "translation" else None
         back = -d if d is not None else _unit(_normals(_new(s0, b)).sum(axis=0))
-        X_goal = X_first if back is None else _translate(X_first, pp.standoff * back)
-    move = X_goal[:3, 3] - X0[:3, 3]
-    dist = float(np.linalg.norm(move))
+        if back is not None:
+            X_goal = _translate(X_first, pp.standoff * back)
+            via = _lift_and_over(task, X0, X_goal, back, ref)
+        else:
+            X_goal = X_first
+    legs = [X0, *via, X_goal]
+    dist = sum(float(np.linalg.norm(b[:3, 3] - a[:3, 3])) for a, b in itertools.pairwise(legs))
     prim = _position_controlled(PrimitiveKind.APPROACH, s0, X_goal, X_goal[:3, 3].copy(), dist, pp)
-    du = _unit(move)
-    prim = replace(prim, direction=np.zeros(3) if du is None else du)
-    return prim, X_goal
+    du = _unit(X_goal[:3, 3] - legs[-2][:3, 3])
+    return replace(prim, direction=np.zeros(3) if du is None else du, via=via), X_goal
+
+
+def _lift_and_over(
+    task: TaskModel, X0: FloatArray, X_goal: FloatArray, up: FloatArray, contact: FloatArray
+) -> tuple[FloatArray, ...]:
+    """Via poses of the approach: rise along ``up``, cross over, come down to the stand-off.
+
+    ``up`` is the retreat direction from the first contact (``contact``). The crossing is
+    at the highest of two levels (along ``up``, of the object's origin): the start pose's,
+    and the stand-off's raised by (a) how far the highest contact point of the whole task
+    lies above the first contact (the environment reaches up to its contact points; the
+    object at the stand-off clears the first contact by the stand-off) and (b) the chord
+    ``2 rho sin(theta / 2)`` by which the turn ``theta`` between the start and stand-off
+    orientations can lower a point of the object at distance ``rho`` from its origin
+    (``rho``: the farthest contact point of the object from its origin, over the task).
+    The turn happens during the crossing, about the origin (:mod:`apo.motion.trajectory`).
+    """
+    points = [e.point for s in task.states for e in s.elements]
+    rise = max([0.0, *(float(up @ (p - contact)) for p in points)])
+    local = [invert_pose(s.X_EG) @ np.append(e.point, 1.0) for s in task.states for e in s.elements]
+    rho = max([0.0, *(float(np.linalg.norm(q[:3])) for q in local)])
+    theta = float(np.linalg.norm(_rotvec(X0, X_goal)))
+    rise += 2.0 * rho * np.sin(min(theta, np.pi) / 2.0)
+    level0, level_s = float(up @ X0[:3, 3]), float(up @ X_goal[:3, 3])
+    level = max(level0, level_s + rise)
+    via = []
+    if level - level0 > _EPS:
+        via.append(_translate(X0, (level - level0) * up))
+    if level - level_s > _EPS:
+        via.append(_translate(X_goal, (level - level_s) * up))
+    return tuple(via)
 
 
 def _emit_transition(task: TaskModel, i: int, cur: _Cursor, pp: PlanParameters) -> None:
