@@ -127,6 +127,23 @@ def _write_stl(poly: Polyhedron, path: Path, scale: float) -> None:
         fh.write(rec.tobytes())
 
 
+def _write_models(dem: DemoInput, outs: OutputSet) -> tuple[Polyhedron, Polyhedron]:
+    """Write the models as STL (mm) into ``outs``; return them as read back from those files.
+
+    The task's feature ids (``["v", 3]``, ``["e", 5]``) must be those of the files the task
+    names, so the recognition runs on the models re-read from them.
+    """
+    from apo.cli import warnings_to_stderr
+    from apo.io.meshes import load_polyhedron
+
+    loaded = []
+    for poly, name in ((dem.grasped, "grasped.stl"), (dem.environment, "environment.stl")):
+        _write_stl(poly, outs.path(name), 1000.0)
+        with warnings_to_stderr("apo demo"):
+            loaded.append(load_polyhedron(outs.path(name), units="mm", name=poly.name))
+    return loaded[0], loaded[1]
+
+
 def demonstration_from_args(args: argparse.Namespace, outs: OutputSet | None = None) -> DemoInput:
     """Return the demonstration the arguments ask for (the built-in example by default).
 
@@ -239,18 +256,18 @@ def _run(
     from apo.recognition import recognize_frames
 
     dem = demonstration_from_args(args, outs)
-    gpath, epath = outs.path("grasped.stl"), outs.path("environment.stl")
-    _write_stl(dem.grasped, gpath, 1000.0)
-    _write_stl(dem.environment, epath, 1000.0)
+    G, E = _write_models(dem, outs)
     rec = recognize_frames(
-        dem.grasped,
-        dem.environment,
+        G,
+        E,
         dem.times,
         dem.X_EG,
         units="mm",
         models=(
-            model_ref_as(gpath, outs.final("grasped.stl"), outs.given, dem.grasped.name),
-            model_ref_as(epath, outs.final("environment.stl"), outs.given, dem.environment.name),
+            model_ref_as(outs.path("grasped.stl"), outs.final("grasped.stl"), outs.given, G.name),
+            model_ref_as(
+                outs.path("environment.stl"), outs.final("environment.stl"), outs.given, E.name
+            ),
         ),
         source=dem.source,
     )
@@ -262,6 +279,6 @@ def _run(
         worker=worker,
         report=None
         if args.no_report
-        else report_maker(rec, dem.grasped, dem.environment, dem.X_EG, []),
+        else report_maker(rec, G, E, dem.X_EG, []),
     )
     return rec, written
