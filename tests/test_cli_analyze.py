@@ -263,3 +263,17 @@ def test_demo_task_feature_ids_are_those_of_its_own_model_files(tmp_path, capsys
             assert _feature_distance(E, el["environment"], p_E) < tol, (state["id"], el)
             checked += 1
     assert checked >= 5
+
+
+def test_repeated_runs_write_byte_identical_sets(tmp_path, capsys):
+    """The same command twice gives the same bytes in every output file (manifest included)."""
+    sets = []
+    for run in ("a", "b"):
+        out = tmp_path / run
+        assert main(["demo", "--out", str(out), "--seed", "4", "--no-report"]) == 0
+        sets.append({p.relative_to(out).as_posix(): p.read_bytes() for p in out.rglob("*")})
+    capsys.readouterr()
+    assert sorted(sets[0]) == sorted(sets[1])
+    assert {"task.json", "frames.csv", "dof.png", ".apo-outputs.json"} <= set(sets[0])
+    for name, data in sets[0].items():
+        assert data == sets[1][name], name

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +17,7 @@ from apo.report.writer import (
     model_ref,
     report_maker,
     sha256_of,
+    task_json,
     write_recognition,
 )
 
@@ -31,6 +31,8 @@ __all__ = [
     "atomic_path",
     "frames_csv",
     "model_ref",
+    "print_result",
+    "print_written",
     "register",
     "report",
     "report_maker",
@@ -101,10 +103,16 @@ def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, 
 
 def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None:
     """Print the table (or the JSON) and where the outputs went."""
-    if as_json:
-        from apo.task import task_to_dict
+    print_result(rec, as_json=as_json)
+    print_written(written)
 
-        print(json.dumps(task_to_dict(rec.task), indent=2))
+
+def print_result(rec: Recognition, *, as_json: bool, task_text: str | None = None) -> None:
+    """Print the Fig. 25-style table and a summary, or ``task.json`` (``task_text`` if given)."""
+    if as_json:
+        from apo.report.writer import task_json
+
+        print(task_text if task_text is not None else task_json(rec), end="", flush=True)
         return
     from apo.report.table import render_table
 
@@ -114,8 +122,13 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
     print(
         f"{n} frames, {len(rec.task.states)} states, {len(rec.task.transitions)} transitions; "
         f"pose correction failed at {failed} frame(s); {int(rec.repaired.sum())} frame(s) "
-        f"repaired"
+        f"repaired",
+        flush=True,
     )
+
+
+def print_written(written: dict[str, Path]) -> None:
+    """Print ``wrote <what>: <path>`` per output file."""
     for k, p in written.items():
         print(f"wrote {k}: {p}")
 
@@ -154,17 +167,17 @@ def run(args: argparse.Namespace) -> int:
     worker = None if args.no_plot else PlotWorker()
     try:
         with OutputSet(out, label="--out") as outs:  # checked and locked before the work
-            rec, written = _run(args, demo, outs, worker)
+            written = _run(args, demo, outs, worker)
     finally:
         if worker is not None:
             worker.close()
-    report(rec, written, as_json=args.json)
+    print_written(written)
     return 0
 
 
 def _run(
     args: argparse.Namespace, demo: Path, outs: OutputSet, worker: PlotWorker | None
-) -> tuple[Recognition, dict[str, Path]]:
+) -> dict[str, Path]:
     from apo.io import poses
     from apo.recognition import recognize_frames
 
@@ -203,12 +216,14 @@ def _run(
         )
     finally:
         close()
-    written = write_recognition(
+    text = task_json(rec)
+    print_result(rec, as_json=args.json, task_text=text)  # before the plot is waited for
+    return write_recognition(
         outs,
         rec,
         plot=not args.no_plot,
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
+        task_text=text,
     )
-    return rec, written

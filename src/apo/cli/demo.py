@@ -24,11 +24,16 @@ import numpy as np
 
 from apo.errors import InputFormatError
 from apo.outputs import OutputSet
-from apo.report.writer import PlotWorker, model_ref_as, report_maker, write_recognition
+from apo.report.writer import (
+    PlotWorker,
+    model_ref_as,
+    report_maker,
+    task_json,
+    write_recognition,
+)
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
-    from apo.recognition import Recognition
 
 DEFAULT_OUT = "apo-demo"
 DEFAULT_NOISE_MM = 0.5
@@ -237,22 +242,21 @@ def _demonstration_from_frames(args: argparse.Namespace, outs: OutputSet) -> Dem
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo demo``; return the exit code."""
-    from apo.cli.analyze import report
+    from apo.cli.analyze import print_written
 
     worker = None if args.no_plot else PlotWorker()
     try:
         with OutputSet(args.out, label="--out") as outs:  # checked and locked before the work
-            rec, written = _run(args, outs, worker)
+            written = _run(args, outs, worker)
     finally:
         if worker is not None:
             worker.close()
-    report(rec, written, as_json=args.json)
+    print_written(written)
     return 0
 
 
-def _run(
-    args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None
-) -> tuple[Recognition, dict[str, Path]]:
+def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -> dict[str, Path]:
+    from apo.cli.analyze import print_result
     from apo.recognition import recognize_frames
 
     dem = demonstration_from_args(args, outs)
@@ -271,14 +275,14 @@ def _run(
         ),
         source=dem.source,
     )
-    written = write_recognition(
+    text = task_json(rec)
+    print_result(rec, as_json=args.json, task_text=text)  # before the plot is waited for
+    return write_recognition(
         outs,
         rec,
         plot=not args.no_plot,
         title=f"DOF indices: {dem.source}",
         worker=worker,
-        report=None
-        if args.no_report
-        else report_maker(rec, G, E, dem.X_EG, []),
+        report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, []),
+        task_text=text,
     )
-    return rec, written

@@ -34,6 +34,7 @@ __all__ = [
     "model_ref_as",
     "report_maker",
     "sha256_of",
+    "task_json",
     "write_recognition",
 ]
 
@@ -192,6 +193,15 @@ def frames_csv(rec: Recognition) -> str:
     return "\n".join(lines) + "\n"
 
 
+def task_json(rec: Recognition) -> str:
+    """Return the text of ``task.json`` of ``rec`` (indented JSON, final newline)."""
+    import json
+
+    from apo.task import task_to_dict
+
+    return json.dumps(task_to_dict(rec.task), indent=2) + "\n"
+
+
 def write_recognition(
     outs: OutputSet,
     rec: Recognition,
@@ -200,20 +210,20 @@ def write_recognition(
     title: str | None = None,
     worker: PlotWorker | None = None,
     report: Callable[[], str] | None = None,
+    task_text: str | None = None,
 ) -> dict[str, Path]:
     """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) into ``outs``.
 
     ``report`` returns the text of ``report.html`` (see :func:`report_maker`); ``worker``
-    draws the plot while this process writes the rest. Returns ``{what: final path}``
+    draws the plot while this process writes the rest; ``task_text`` is
+    :func:`task_json` of ``rec`` if the caller has it already. Returns ``{what: final path}``
     (``task``, ``frames``, ``plot``, ``report``); the files appear there when ``outs`` commits.
     """
-    from apo.task import task_to_dict
-
     written: dict[str, Path] = {}
     want_plot = plot and bool(rec.task.states)
     png = outs.path("dof.png")
     submitted = want_plot and worker is not None and worker.submit(rec, png, title)
-    written["task"] = outs.write_json("task.json", task_to_dict(rec.task))
+    written["task"] = outs.write_text("task.json", task_text or task_json(rec))
     written["frames"] = outs.write_text("frames.csv", frames_csv(rec))
     if want_plot:
         if not (submitted and worker is not None and worker.result(png)):
