@@ -133,6 +133,25 @@ def print_written(written: dict[str, Path]) -> None:
         print(f"wrote {k}: {p}")
 
 
+def _warn_scale(
+    G: Polyhedron,
+    E: Polyhedron,
+    X_EG: Any,
+    units: str,
+    threshold: float | None,
+    paths: tuple[Path, Path],
+) -> None:
+    """Print a warning if the poses do not fit the models' size (exit status unchanged)."""
+    from apo.io.meshes import MESH_SUFFIXES
+    from apo.io.plausibility import scale_warnings
+
+    meshes = any(MESH_SUFFIXES.get(p.suffix.lower()) != "step" for p in paths)
+    for line in scale_warnings(
+        G, E, X_EG, units=units, threshold=threshold, models_follow_units=meshes
+    ):
+        print(f"apo analyze: warning: {line}", file=sys.stderr)
+
+
 def _load_models(
     demo_path: Path, grasped: str | None, environment: str | None, units: str | None, dem: Any
 ) -> tuple[Polyhedron, Polyhedron, Path, Path]:
@@ -201,6 +220,7 @@ def _run(
     threshold = None if args.threshold is None else args.threshold * UNITS[units]
     if threshold is not None and not threshold > 0:
         raise InputFormatError(f"--threshold must be positive, got {args.threshold}")
+    _warn_scale(G, E, dem.X_EG, units, threshold, (gp, ep))
     progress, close = progress_bar(len(dem.X_EG), "contacts")
     try:
         rec = recognize_frames(
