@@ -46,9 +46,12 @@ __all__ = [
     "Decomposition",
     "DirectCheck",
     "DofKind",
+    "SubSkill",
+    "SubSkillKind",
     "Subskill",
     "SubskillKind",
     "Transition",
+    "TransitionAnalysis",
     "analyze_transition",
     "check_six",
     "decompose",
@@ -73,7 +76,7 @@ class DofKind(enum.StrEnum):
     SC = "SC"
 
 
-class SubskillKind(enum.StrEnum):
+class SubSkillKind(enum.StrEnum):
     """Sub-skills of paper section 3.3 (push-to = tsukiate, release, slide = suberashi)."""
 
     PUSH_TO = "push_to"
@@ -167,12 +170,16 @@ class Decomposition:
 
 
 @dataclass(frozen=True)
-class Subskill:
+class SubSkill:
     """A sub-skill assigned to a state transition (paper 3.5), environment frame.
+
+    The one sub-skill type: :func:`analyze_transition` returns it and the task model stores
+    it (``apo.task.SubSkill`` is this class).
 
     Attributes
     ----------
-    kind : SubskillKind
+    kind : SubSkillKind
+        Given as a :class:`SubSkillKind` or its string (``"push_to"``).
     space : str
         ``"translation"`` or ``"rotation"``.
     type : str or None
@@ -182,31 +189,35 @@ class Subskill:
         Translation: unit direction of the motion (push-to: into the new contact; release:
         away from the lost one; slide: towards where the support ends). Rotation: unit axis,
         the motion being a positive (right-handed) turn about it. None when the sign cannot
-        be determined from the data given.
+        be determined from the data given; the task model stores zeros instead of None.
     point : ndarray, shape (3,), metres, or None
         Rotation only: the point of the rotation axis closest to the origin of E,
         ``C = S0 x S1 / |S0|^2`` of the motion twist. None for translation or when unknown.
-    subspace : ndarray, shape (k, 3)
-        Orthonormal rows spanning the directions (axes) the sub-skill acts in, sign-free:
-        the principal directions shared by the two subspaces of its DOF transitions. Empty
-        when the states carry no geometry.
     source : str
         Where ``direction`` came from: ``"contacts"`` (separating normals of the new or lost
         contact elements), ``"detaching_direction"`` (``DofGeometry``), ``"poses"`` (the
         displacement between the two poses), or ``"none"``.
+    subspace : ndarray, shape (k, 3)
+        Orthonormal rows spanning the directions (axes) the sub-skill acts in, sign-free:
+        the principal directions shared by the two subspaces of its DOF transitions. Empty
+        when the states carry no geometry.
     """
 
-    kind: SubskillKind
+    kind: SubSkillKind
     space: str
     type: str | None = None
     direction: FloatArray | None = None
     point: FloatArray | None = None
-    subspace: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     source: str = "none"
+    subspace: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __post_init__(self) -> None:
+        if type(self.kind) is not SubSkillKind:
+            object.__setattr__(self, "kind", SubSkillKind(self.kind))
 
 
 @dataclass(frozen=True)
-class Transition:
+class TransitionAnalysis:
     """The analysis of one transition between two contact states.
 
     Attributes
@@ -215,7 +226,7 @@ class Transition:
         ``{"translation": ((X, Y), ...), "rotation": (...)}`` with X, Y :class:`DofKind`
         (a ``str`` enum: ``("M", "D") == (DofKind.M, DofKind.D)``); the chosen decomposition
         of each space; empty for a space without a practical decomposition.
-    subskills : tuple of Subskill
+    subskills : tuple of SubSkill
         Translation first, then rotation; within a space push-to, slide, release.
     critical : bool
         True if a chosen decomposition contains SM -> C or SD -> C.
@@ -238,7 +249,7 @@ class Transition:
     """
 
     dof_transitions: Mapping[str, tuple[tuple[DofKind, DofKind], ...]]
-    subskills: tuple[Subskill, ...]
+    subskills: tuple[SubSkill, ...]
     critical: bool
     feasible: bool
     alternatives: Mapping[str, tuple[Decomposition, ...]]
@@ -247,6 +258,16 @@ class Transition:
     dof_changed: bool = True
     before_six: Mapping[str, Six] = field(default_factory=dict)
     after_six: Mapping[str, Six] = field(default_factory=dict)
+
+
+Subskill = SubSkill
+"""Former name of :class:`SubSkill` (kept working)."""
+SubskillKind = SubSkillKind
+"""Former name of :class:`SubSkillKind` (kept working)."""
+Transition = TransitionAnalysis
+"""Former name of :class:`TransitionAnalysis` (kept working); ``apo.task.Transition`` is the
+transition of a task model (between named states, at a frame), which carries this analysis's
+DOF transitions and sub-skills."""
 
 
 @dataclass(frozen=True)
@@ -598,12 +619,12 @@ def _element_normals(
     ]
 
 
-def _changed_elements(kind: SubskillKind, ctx: _Ctx) -> list[tuple[FloatArray, FloatArray]]:
+def _changed_elements(kind: SubSkillKind, ctx: _Ctx) -> list[tuple[FloatArray, FloatArray]]:
     """``(point, normals)`` of the elements a sub-skill is about.
 
     The lost ones for a release, the new ones for a push-to or a slide.
     """
-    if kind is SubskillKind.RELEASE:
+    if kind is SubSkillKind.RELEASE:
         return _element_normals(ctx.before_state, ctx.after_state)
     return _element_normals(ctx.after_state, ctx.before_state)
 
@@ -654,7 +675,7 @@ class _Ctx:
 
 
 def _translation_direction(
-    kind: SubskillKind, sub: FloatArray, ctx: _Ctx
+    kind: SubSkillKind, sub: FloatArray, ctx: _Ctx
 ) -> tuple[FloatArray | None, str]:
     """Signed unit motion direction of a translational sub-skill inside span(sub)."""
     if sub.shape[0] == 0:
@@ -665,17 +686,17 @@ def _translation_direction(
     # (-n); slide: towards where the support ends (+n of the edge's other face, which points
     # on in the direction of motion)
     elems = _changed_elements(kind, ctx)
-    sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
+    sign = -1.0 if kind is SubSkillKind.PUSH_TO else 1.0
     if elems:
         n_sum = np.sum([ns.sum(axis=0) for _, ns in elems], axis=0)
         u = _unit(sign * (proj @ n_sum))
         if u is not None:
             return u, "contacts"
     # 2. the detaching direction of the state with the new detaching DOF
-    if kind is SubskillKind.PUSH_TO:
+    if kind is SubSkillKind.PUSH_TO:
         d = np.asarray(ctx.after.geometry.translation_detaching_direction, dtype=np.float64)
         u = _unit(-(proj @ d))
-    elif kind is SubskillKind.RELEASE:
+    elif kind is SubSkillKind.RELEASE:
         d = np.asarray(ctx.before.geometry.translation_detaching_direction, dtype=np.float64)
         u = _unit(proj @ d)
     else:
@@ -696,13 +717,13 @@ def _translation_direction(
 
 
 def _rotation_direction(
-    kind: SubskillKind, sub: FloatArray, ctx: _Ctx
+    kind: SubSkillKind, sub: FloatArray, ctx: _Ctx
 ) -> tuple[FloatArray | None, FloatArray | None, str]:
     """Signed unit axis and axis point of a rotational sub-skill inside span(sub)."""
     if sub.shape[0] == 0:
         return None, None, "none"
     # the twists that realise these axes keep the maintaining state's contacts
-    maint_geom = ctx.after.geometry if kind is SubskillKind.RELEASE else ctx.before.geometry
+    maint_geom = ctx.after.geometry if kind is SubSkillKind.RELEASE else ctx.before.geometry
     xis = _twists_for_axes(sub, maint_geom)
 
     # The maintaining translations can be added to any maintaining twist: of the axes with a
@@ -733,7 +754,7 @@ def _rotation_direction(
     if xis is not None:
         xis = through_pivot(xis)
         elems = _changed_elements(kind, ctx)
-        sign = -1.0 if kind is SubskillKind.PUSH_TO else 1.0
+        sign = -1.0 if kind is SubSkillKind.PUSH_TO else 1.0
         if elems:
             # pairing of twist and contact wrench [P x F; F]: > 0 moves away from the contact
             wrench = np.zeros(6)
@@ -763,7 +784,7 @@ def _orthonormal_rows(a: FloatArray) -> FloatArray:
     return np.asarray(vt[keep], dtype=np.float64)
 
 
-def _pivot(kind: SubskillKind, ctx: _Ctx) -> FloatArray | None:
+def _pivot(kind: SubSkillKind, ctx: _Ctx) -> FloatArray | None:
     """Return the point a rotational sub-skill turns about, a point of its contact elements.
 
     The elements are the new ones (push-to, slide) or the lost ones (release), else all
@@ -785,7 +806,7 @@ def _pivot(kind: SubskillKind, ctx: _Ctx) -> FloatArray | None:
         return pts[0]
     P: FloatArray = np.asarray(pts, dtype=np.float64)
     # the points lie at their own state's pose: carry them (with G) to the other state's pose
-    if kind is SubskillKind.RELEASE:
+    if kind is SubSkillKind.RELEASE:
         rel = ctx.x_after @ np.linalg.inv(ctx.x_before)
     else:
         rel = ctx.x_before @ np.linalg.inv(ctx.x_after)
@@ -820,23 +841,23 @@ def _push_type(ctx: _Ctx, sub: FloatArray) -> str | None:
 
 def _subskills_of_space(
     space: Space, dec: Decomposition, ctx: _Ctx, restraining_grows: bool
-) -> list[Subskill]:
+) -> list[SubSkill]:
     sb = kind_subspaces(check_six(ctx.before.six(space)), ctx.before.geometry, space)
     sa = kind_subspaces(check_six(ctx.after.six(space)), ctx.after.geometry, space)
-    out: list[Subskill] = []
-    rules: list[tuple[SubskillKind, frozenset[tuple[DofKind, DofKind]]]] = [
-        (SubskillKind.PUSH_TO, _PUSH),
-        (SubskillKind.SLIDE, _SLIDE),
-        (SubskillKind.RELEASE, _RELEASE),
+    out: list[SubSkill] = []
+    rules: list[tuple[SubSkillKind, frozenset[tuple[DofKind, DofKind]]]] = [
+        (SubSkillKind.PUSH_TO, _PUSH),
+        (SubSkillKind.SLIDE, _SLIDE),
+        (SubSkillKind.RELEASE, _RELEASE),
     ]
     for kind, pairs in rules:
         units = [p for p in dec.pairs if p in pairs]
-        if not units or (kind is SubskillKind.SLIDE and not restraining_grows):
+        if not units or (kind is SubSkillKind.SLIDE and not restraining_grows):
             continue
         # the directions of the maintaining side that the transition moves
         sub = _empty()
         if sb and sa:
-            if kind is SubskillKind.RELEASE:
+            if kind is SubSkillKind.RELEASE:
                 other = np.vstack([sb[x] for x in sorted({x for x, _ in units})])
                 sub = _principal(sa[DofKind.M], other, len(units))
             else:
@@ -848,9 +869,9 @@ def _subskills_of_space(
         else:
             direction, point, source = _rotation_direction(kind, sub, ctx)
         typ = (
-            _push_type(ctx, sub) if (kind is SubskillKind.PUSH_TO and space == "rotation") else None
+            _push_type(ctx, sub) if (kind is SubSkillKind.PUSH_TO and space == "rotation") else None
         )
-        out.append(Subskill(kind, space, typ, direction, point, sub, source))
+        out.append(SubSkill(kind, space, typ, direction, point, source=source, subspace=sub))
     return out
 
 
@@ -876,7 +897,7 @@ def analyze_transition(
     after_state: ContactState | None = None,
     X_EG_before: npt.ArrayLike | None = None,
     X_EG_after: npt.ArrayLike | None = None,
-) -> Transition:
+) -> TransitionAnalysis:
     """Analyse the transition between two consecutive contact states (paper 3.5).
 
     Parameters
@@ -893,7 +914,7 @@ def analyze_transition(
 
     Returns
     -------
-    Transition
+    TransitionAnalysis
 
     Raises
     ------
@@ -921,7 +942,7 @@ def analyze_transition(
     alternatives: dict[str, tuple[Decomposition, ...]] = {}
     choice: dict[str, str] = {}
     reasons: list[str] = []
-    subskills: list[Subskill] = []
+    subskills: list[SubSkill] = []
     critical = False
     grows = {
         "translation": after.restraining.translation > before.restraining.translation,
@@ -957,7 +978,7 @@ def analyze_transition(
                 f"touching pairs are not nested: {len(ta - tb)} only before, "
                 f"{len(tb - ta)} only after (Donald's condition)"
             )
-    return Transition(
+    return TransitionAnalysis(
         dof_transitions=chosen,
         subskills=tuple(subskills),
         critical=critical,
@@ -972,7 +993,7 @@ def analyze_transition(
 
 
 def transition_pairs(
-    transition: Transition,
+    transition: TransitionAnalysis,
 ) -> dict[str, list[tuple[str, str]]]:
     """Return ``dof_transitions`` with plain strings, e.g. ``{"translation": [("M", "D")]}``."""
     return {

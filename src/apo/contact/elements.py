@@ -12,11 +12,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from apo.dof import ContactPoint
 from apo.typing import FloatArray
 
 
-class ContactKind(enum.Enum):
-    """Kind of a contact element: grasped feature first, environment feature second."""
+class ContactKind(enum.StrEnum):
+    """Kind of a contact element: grasped feature first, environment feature second.
+
+    A ``str`` enum: ``ContactKind.VF == "VF"``, and it is written as ``"VF"`` in JSON.
+    """
 
     VF = "VF"
     FV = "FV"
@@ -30,13 +34,18 @@ class ContactKind(enum.Enum):
 Feature = tuple[str, int]
 
 
-@dataclass(frozen=True)
-class ContactElement:
-    """One contact element (environment frame, metres).
+@dataclass(frozen=True, init=False)
+class ContactElement(ContactPoint):
+    """One contact element: a contact point with its normals and the features that make it.
+
+    The one type of a contact element everywhere: the contact search returns it, the DOF
+    analysis takes it (it is an :class:`apo.dof.ContactPoint`), and the task model stores it
+    (``apo.task.Element`` is this class). Environment frame, metres.
 
     Attributes
     ----------
     kind : ContactKind
+        Given as a :class:`ContactKind` or its string (``"VF"``).
     grasped : Feature
         Feature of the grasped object G, e.g. ``("v", 3)``.
     environment : Feature
@@ -45,18 +54,35 @@ class ContactElement:
         Contact point in the environment frame.
     normals : ndarray, shape (M, 3)
         Extreme rays of the cone of separating normals (unit, from E towards G).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> el = ContactElement("VF", ("v", 0), ("f", 2), np.zeros(3), np.array([[0.0, 0, 1]]))
+    >>> el.kind is ContactKind.VF, el.key, el.singular
+    (True, ('VF', ('v', 0), ('f', 2)), False)
     """
 
     kind: ContactKind
     grasped: Feature
     environment: Feature
-    point: FloatArray
-    normals: FloatArray
 
-    @property
-    def singular(self) -> bool:
-        """True if the element has more than one separating normal."""
-        return int(self.normals.shape[0]) > 1
+    def __init__(
+        self,
+        kind: ContactKind | str,
+        grasped: Feature,
+        environment: Feature,
+        point: FloatArray,
+        normals: FloatArray,
+    ) -> None:
+        # The positional order (kind, grasped, environment, point, normals) predates the
+        # ContactPoint base, whose fields come first in the dataclass.
+        setattr_ = object.__setattr__
+        setattr_(self, "kind", kind if type(kind) is ContactKind else ContactKind(kind))
+        setattr_(self, "grasped", grasped)
+        setattr_(self, "environment", environment)
+        setattr_(self, "point", point)
+        setattr_(self, "normals", normals)
 
     @property
     def key(self) -> tuple[str, Feature, Feature]:

@@ -321,7 +321,11 @@ def find_contacts_naive(
 
 
 def contact_points(state: ContactState) -> list[ContactPoint]:
-    """Convert the elements of ``state`` to DOF-analysis contact points (frame E, metres).
+    """Return copies of the elements of ``state`` as plain DOF-analysis contact points.
+
+    Every :class:`ContactElement` already is an :class:`apo.dof.ContactPoint` and can be
+    given to :func:`apo.dof.analyze` as it is; this returns independent copies without the
+    feature ids (frame E, metres).
 
     Parameters
     ----------

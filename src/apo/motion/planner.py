@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from apo.dof import ContactPoint, analyze
+from apo.dof import analyze
 from apo.errors import InputFormatError
 from apo.motion.program import (
     Alignment,
@@ -50,7 +50,9 @@ _RANK_TOL = 1e-6
 # --------------------------------------------------------------------------------------------
 
 
-def _unit(v: npt.ArrayLike) -> FloatArray | None:
+def _unit(v: npt.ArrayLike | None) -> FloatArray | None:
+    if v is None:  # a sub-skill direction the analysis could not determine
+        return None
     a = np.asarray(v, dtype=float)
     n = float(np.linalg.norm(a))
     return None if n < _EPS else a / n
@@ -144,7 +146,7 @@ def _constrained(state: State) -> tuple[FloatArray, FloatArray]:
     """Regular constraining subspaces (translation, rotation axes) of a state's contacts."""
     if not state.elements:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    res = analyze([ContactPoint(point=e.point, normals=e.normals) for e in state.elements])
+    res = analyze(state.elements)  # contact elements are DOF-analysis contact points
     g = res.geometry
     return np.asarray(g.translation_constraining), np.asarray(g.rotation_constraining)
 

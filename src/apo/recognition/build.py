@@ -63,7 +63,7 @@ def transition_record(
     }
     subs = tuple(
         SubSkill(
-            kind=_enum_str(s.kind),
+            kind=s.kind,
             space=_enum_str(s.space),
             type=None if s.type is None else _enum_str(s.type),
             direction=np.zeros(3)

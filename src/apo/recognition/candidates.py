@@ -35,7 +35,7 @@ __all__ = [
 
 def dof_of(state: ContactState) -> Any:
     """``apo.dof.analyze`` of the state's elements (a ``DofResult``)."""
-    points = [dof.ContactPoint(point=e.point, normals=e.normals) for e in state.elements]
+    points = list(state.elements)  # contact elements are DOF-analysis contact points
     return dof.analyze(points)
 
 
