@@ -210,9 +210,12 @@ def _run(
         from apo.cli.track import reject_tracking_options
 
         reject_tracking_options(args, demo)
-        dem = poses.load_demonstration(
-            demo, units=args.units, grasped=args.grasped, environment=args.environment
-        )
+        from apo.cli import warnings_to_stderr
+
+        with warnings_to_stderr("apo analyze"):
+            dem = poses.load_demonstration(
+                demo, units=args.units, grasped=args.grasped, environment=args.environment
+            )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
