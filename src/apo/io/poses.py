@@ -498,7 +498,8 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise InputFormatError(
-                f"{path}: line {head_line}: repeated column names {_excerpt(str(sorted(dup)), quote=False)}"
+                f"{path}: line {head_line}: repeated column names "
+                f"{_excerpt(str(sorted(dup)), quote=False)}"
             )
         rows = rows[1:]
         if not rows:
