@@ -17,7 +17,7 @@ from apo.report.writer import (
     model_ref,
     report_maker,
     sha256_of,
-    task_json,
+    task_document,
     write_recognition,
 )
 
@@ -110,9 +110,10 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
 def print_result(rec: Recognition, *, as_json: bool, task_text: str | None = None) -> None:
     """Print the Fig. 25-style table and a summary, or ``task.json`` (``task_text`` if given)."""
     if as_json:
-        from apo.report.writer import task_json
+        from apo.report.writer import task_document
 
-        print(task_text if task_text is not None else task_json(rec), end="", flush=True)
+        text = task_text if task_text is not None else task_document(rec)[1]
+        print(text, end="", flush=True)
         return
     from apo.report.table import render_table
 
@@ -239,8 +240,8 @@ def _run(
         )
     finally:
         close()
-    text = task_json(rec)
-    print_result(rec, as_json=args.json, task_text=text)  # before the plot is waited for
+    task = task_document(rec)
+    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
     return write_recognition(
         outs,
         rec,
@@ -248,5 +249,5 @@ def _run(
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
-        task_text=text,
+        task=task,
     )

@@ -28,7 +28,7 @@ from apo.report.writer import (
     PlotWorker,
     model_ref_as,
     report_maker,
-    task_json,
+    task_document,
     write_recognition,
 )
 
@@ -275,8 +275,8 @@ def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -
         ),
         source=dem.source,
     )
-    text = task_json(rec)
-    print_result(rec, as_json=args.json, task_text=text)  # before the plot is waited for
+    task = task_document(rec)
+    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
     return write_recognition(
         outs,
         rec,
@@ -284,5 +284,5 @@ def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -
         title=f"DOF indices: {dem.source}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, []),
-        task_text=text,
+        task=task,
     )
