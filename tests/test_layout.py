@@ -1,0 +1,73 @@
+"""The package layout of docs/architecture.md: layers, plain imports, optional extras."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "apo"
+CORE = ("spatial", "geometry", "contact", "dof", "transitions", "correction", "task")
+# What the core may import from apo: the core itself and the leaf modules below it.
+CORE_OK = (*CORE, "constants", "errors", "typing")
+
+
+def _modules(*parts: str) -> list[Path]:
+    out: list[Path] = []
+    for p in parts:
+        path = SRC / p
+        out += sorted(path.rglob("*.py")) if path.is_dir() else [path.with_suffix(".py")]
+    return out
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module name imported by ``path`` (at top level or inside functions)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+@pytest.mark.parametrize("path", _modules(*CORE), ids=lambda p: str(p.relative_to(SRC)))
+def test_core_imports_only_numpy_scipy_and_the_core(path: Path) -> None:
+    # Pure maths never imports I/O, plotting, perception, motion, simulation or the CLI.
+    for name in _imports(path):
+        top = name.split(".")[0]
+        if top == "apo":
+            assert name.split(".")[1] in CORE_OK, f"{path.name} imports {name}"
+        else:
+            assert top in {"numpy", "scipy", "highspy", "__future__"} or top in (
+                sys.stdlib_module_names
+            ), f"{path.name} imports {name}"
+
+
+def test_no_importlib_calls_in_the_library() -> None:
+    # Imports tools can see: no importlib.import_module / __import__ in apo.
+    for path in _modules("."):
+        text = path.read_text(encoding="utf-8")
+        assert "import_module(" not in text and "__import__(" not in text, path
+
+
+def test_every_module_imports_without_the_optional_extras() -> None:
+    # Optional extras (Open3D, OpenCV, MuJoCo, Selenium) are imported inside the functions
+    # that use them, so every module (and its doctests) loads without them.
+    code = """
+import importlib, pkgutil, sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in {'open3d', 'cv2', 'mujoco', 'selenium'}:
+            raise ImportError('blocked ' + name)
+sys.meta_path.insert(0, Block())
+import apo
+for m in pkgutil.walk_packages(apo.__path__, 'apo.'):
+    if not m.name.endswith('__main__'):
+        importlib.import_module(m.name)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
