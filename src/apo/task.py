@@ -33,12 +33,18 @@ __all__ = [
     "SUBSKILL_KINDS",
     "UNITS",
     "Element",
+    "GraphState",
+    "GraphTransition",
     "ModelRef",
     "Rejected",
     "State",
+    "StateGraph",
     "SubSkill",
     "TaskModel",
     "Transition",
+    "check_graph",
+    "graph_to_dict",
+    "state_graph",
     "state_letters",
     "task_from_dict",
     "task_to_dict",
@@ -241,6 +247,10 @@ class TaskModel:
                 return s
         raise KeyError(state_id)
 
+    def graph(self) -> StateGraph:
+        """Return the graph of distinct contact states (:func:`state_graph`)."""
+        return state_graph(self)
+
     def subskill_sequence(self) -> list[tuple[str, str, str | None]]:
         """Return the sub-skills of all transitions in order as ``(kind, space, type)``."""
         return [(k.kind, k.space, k.type) for t in self.transitions for k in t.subskills]
@@ -376,6 +386,7 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
         "states": states,
         "transitions": transitions,
         "rejected": rejected,
+        "graph": graph_to_dict(state_graph(task)),
         **({"extra": dict(task.extra)} if task.extra else {}),
     }
 
@@ -665,7 +676,7 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
             "n_frames", f"{n_frames} but the last state ends at frame {states[-1].frames[1]}"
         )
     extra = d.get("extra", {})
-    return TaskModel(
+    task = TaskModel(
         units=units,
         grasped=refs[0],
         environment=refs[1],
@@ -678,6 +689,9 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
         threshold=rd.number(d.get("threshold", 0.0), "threshold") * k,
         extra=dict(rd.obj(extra, "extra")),
     )
+    if "graph" in d:
+        check_graph(task, d["graph"], source=source)
+    return task
 
 
 def _read_pairs(rd: _Reader, v: Any, where: str) -> tuple[tuple[str, str], ...]:
@@ -699,3 +713,129 @@ def _model_from_dict(rd: _Reader, v: Any, where: str) -> ModelRef:
         if len(h) != 64 or any(c not in "0123456789abcdef" for c in h):
             raise rd.fail(f"{where}.sha256", "expected 64 lowercase hex digits")
     return ModelRef(path=path, sha256=h, name=rd.string(m.get("name", ""), f"{where}.name"))
+
+
+# --------------------------------------------------------------------------------------------
+# The state graph: each distinct contact state once, with its visits
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GraphState:
+    """A distinct contact state of the task (the same contact elements), with its visits.
+
+    Attributes
+    ----------
+    id : str
+        Id of its first visit in ``TaskModel.states``.
+    states : tuple of str
+        Ids of every visit, in time order.
+    visits : tuple of (int, int)
+        Frame range ``(first, last)`` of every visit, inclusive.
+    """
+
+    id: str
+    states: tuple[str, ...]
+    visits: tuple[tuple[int, int], ...]
+
+
+@dataclass(frozen=True)
+class GraphTransition:
+    """Transitions between two distinct states, counted.
+
+    Attributes
+    ----------
+    from_id, to_id : str
+        Ids of the distinct states (``GraphState.id``).
+    count : int
+        How often the demonstration makes it.
+    frames : tuple of int
+        First frame of the ``to`` state at each occurrence.
+    critical : bool
+        True if some occurrence is critical.
+    direct : bool
+        True if every occurrence passes the direct-transition test.
+    """
+
+    from_id: str
+    to_id: str
+    count: int
+    frames: tuple[int, ...]
+    critical: bool
+    direct: bool
+
+
+@dataclass(frozen=True)
+class StateGraph:
+    """The task's distinct contact states and the transitions between them."""
+
+    states: tuple[GraphState, ...]
+    transitions: tuple[GraphTransition, ...]
+
+
+def _element_set(s: State) -> frozenset[tuple[str, Feature, Feature]]:
+    return frozenset((e.kind, e.grasped, e.environment) for e in s.elements)
+
+
+def state_graph(task: TaskModel) -> StateGraph:
+    """Return the graph of distinct contact states (same elements) and their transitions.
+
+    A demonstration that repeats an assembly visits each distinct state several times; the
+    graph lists it once with the frame ranges of its visits, and each transition between
+    distinct states once with its count, in order of first occurrence.
+    """
+    node_of: dict[frozenset[tuple[str, Feature, Feature]], str] = {}
+    visits: dict[str, list[State]] = {}
+    for s in task.states:
+        nid = node_of.setdefault(_element_set(s), s.id)
+        visits.setdefault(nid, []).append(s)
+    by_state = {s.id: node_of[_element_set(s)] for s in task.states}
+    edges: dict[tuple[str, str], list[Transition]] = {}
+    for t in task.transitions:
+        edges.setdefault((by_state[t.from_id], by_state[t.to_id]), []).append(t)
+    return StateGraph(
+        states=tuple(
+            GraphState(nid, tuple(v.id for v in vs), tuple(v.frames for v in vs))
+            for nid, vs in visits.items()
+        ),
+        transitions=tuple(
+            GraphTransition(
+                a, b, len(ts), tuple(t.frame for t in ts),
+                any(t.critical for t in ts), all(t.direct for t in ts),
+            )
+            for (a, b), ts in edges.items()
+        ),
+    )  # fmt: skip
+
+
+def graph_to_dict(graph: StateGraph) -> dict[str, Any]:
+    """Return the JSON form of a state graph (the ``graph`` of ``task.json``)."""
+    return {
+        "states": [
+            {"id": g.id, "states": list(g.states),
+             "visits": [[int(a), int(b)] for a, b in g.visits]}
+            for g in graph.states
+        ],
+        "transitions": [
+            {"from": e.from_id, "to": e.to_id, "count": e.count,
+             "frames": [int(f) for f in e.frames], "critical": e.critical, "direct": e.direct}
+            for e in graph.transitions
+        ],
+    }  # fmt: skip
+
+
+def check_graph(task: TaskModel, data: Any, *, source: str = "") -> StateGraph:
+    """Check the ``graph`` of a ``task.json`` against its states and transitions.
+
+    Raises
+    ------
+    InputFormatError
+        If ``data`` is not the graph the states and transitions give.
+    """
+    graph = state_graph(task)
+    if data != graph_to_dict(graph):
+        raise InputFormatError(
+            f"{source or 'task'}: graph: does not match the states and transitions "
+            "(each distinct contact state once with its visits, transitions counted)"
+        )
+    return graph

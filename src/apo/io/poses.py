@@ -46,10 +46,10 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from apo.errors import InputFormatError
 from apo.spatial import (
@@ -293,18 +293,11 @@ def read_pose_list(
         )
 
     n = len(scenes)
-    x_c = np.zeros((n, n_models, 4, 4))
-    tags = np.zeros((n, n_models), dtype=np.int64)
-    first = np.zeros(n, dtype=np.int64)
-    for k, scene in enumerate(scenes):
-        first[k] = scene[0] + 1
-        if len(scene) != n_models:
-            raise InputFormatError(
-                f"{where(scene[0])}: scene {k + 1} has {len(scene)} pose lines, expected "
-                f"{n_models} (one per model)"
-            )
-        for m, j in enumerate(scene):
-            tags[k, m], x_c[k, m] = _pose_line(lines[j], where(j), scale)
+    first = np.array([scene[0] + 1 for scene in scenes], dtype=np.int64)
+    parsed = _scene_poses_fast(lines, scenes, n_models, scale)
+    if parsed is None:  # something is wrong: the line-by-line reader names it
+        parsed = _scene_poses(lines, scenes, n_models, scale, where)
+    tags, x_c = parsed
     x_eg = np.einsum("nij,njk->nik", _invert_all(x_c[:, 1]), x_c[:, 0])
     rate = 1.0 if fps is None else float(fps)
     return Demonstration(
@@ -320,6 +313,61 @@ def read_pose_list(
         lines=first,
         fps=rate,
     )
+
+
+def _scene_poses(
+    lines: list[str], scenes: list[list[int]], n_models: int, scale: float, where: Any
+) -> tuple[IntArray, FloatArray]:
+    """Parse every scene's pose lines one by one; raise on the first bad one."""
+    n = len(scenes)
+    x_c = np.zeros((n, n_models, 4, 4))
+    tags = np.zeros((n, n_models), dtype=np.int64)
+    for k, scene in enumerate(scenes):
+        if len(scene) != n_models:
+            raise InputFormatError(
+                f"{where(scene[0])}: scene {k + 1} has {len(scene)} pose lines, expected "
+                f"{n_models} (one per model)"
+            )
+        for m, j in enumerate(scene):
+            tags[k, m], x_c[k, m] = _pose_line(lines[j], where(j), scale)
+    return tags, x_c
+
+
+def _scene_poses_fast(
+    lines: list[str], scenes: list[list[int]], n_models: int, scale: float
+) -> tuple[IntArray, FloatArray] | None:
+    """Parse all pose lines at once (numpy); None if anything is off (then read line by line).
+
+    Same result as :func:`_scene_poses` on a valid file: tags, and the poses from the
+    axis-angle rotation (Rodrigues' formula, vectorised) and the position times ``scale``.
+    """
+    if any(len(scene) != n_models for scene in scenes):
+        return None
+    rows = [lines[j].split() for scene in scenes for j in scene]
+    try:
+        table = np.array(rows, dtype=np.float64)
+    except ValueError:  # ragged rows or a token that is not a number
+        return None
+    if table.ndim != 2 or table.shape[1] != 8 or not np.isfinite(table).all():
+        return None
+    tags = table[:, 0]
+    if not all(r[0].lstrip("+-").isdigit() for r in rows):
+        return None
+    axis, angle = table[:, 4:7], table[:, 7]
+    norm = np.linalg.norm(axis, axis=1)
+    if np.any((norm < 1e-12) & (np.abs(angle) > 1e-12)):
+        return None
+    k = axis / np.where(norm < 1e-12, 1.0, norm)[:, None]
+    K = np.zeros((len(k), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    x = np.zeros((len(k), 4, 4))
+    x[:, :3, :3] = np.eye(3) + s * K + (1.0 - c) * (K @ K)
+    x[:, :3, 3] = table[:, 1:4] * scale
+    x[:, 3, 3] = 1.0
+    n = len(scenes)
+    return tags.astype(np.int64).reshape(n, n_models), x.reshape(n, n_models, 4, 4)
 
 
 def _pose_line(line: str, where: str, scale: float) -> tuple[int, FloatArray]:
@@ -659,6 +707,8 @@ def write_pose_list(
     names = [str(m) for m in models]
     if len(names) != 2 or any(not m.strip() or "\n" in m or "\r" in m for m in names):
         raise InputFormatError(f"{path}: need two model paths without line breaks, got {names}")
+    from scipy.spatial.transform import Rotation
+
     rotvec = Rotation.from_matrix(r).as_rotvec()
     out = ["No of Models: 2", *names, "", f"No of Scenes: {x.shape[0]}"]
     identity = f"{int(tags[1])} 0.0 0.0 0.0 1.0 0.0 0.0 0.0"

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from apo.task import TaskModel
+
+FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["plot_dof"]
 
@@ -83,16 +86,42 @@ def plot_dof(
         ax.set_ylim(0, 3)
         ax.set_yticks([0, 1, 2, 3])
         ax.set_ylabel(f"{sp} DOF")
-        for t in task.transitions:
-            xc = x[min(t.frame, n - 1)]
-            ax.axvline(xc, color="red" if t.critical else "0.3", lw=1.5 if t.critical else 0.5)
-    for s in task.states:
-        xm = 0.5 * (x[s.frames[0]] + x[s.frames[1] + 1])
-        axes[0].text(xm, 3.05, s.id, ha="center", va="bottom", fontsize=8)
+        _transition_lines(ax, task, x, n)
+    _state_labels(axes[0], task, x)
     axes[0].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     axes[1].set_xlabel(xlabel)
     fig.suptitle(title or f"DOF indices: {task.source or 'demonstration'}", y=0.995)
-    fig.tight_layout()
+    # fixed margins (room for the legend on the right): no layout pass before drawing
+    fig.subplots_adjust(left=0.07, right=0.88, top=0.9, bottom=0.1, hspace=0.12)
     out = Path(path)
     fig.savefig(out, dpi=110, format="png")
     return out
+
+
+#: At most this many state letters are written along the top (the widest states first).
+MAX_LABELS = 40
+
+
+def _transition_lines(ax: Any, task: TaskModel, x: FloatArray, n: int) -> None:
+    """Draw every transition as a vertical line: two collections (ordinary, critical).
+
+    One ``LineCollection`` per kind, so the cost does not grow per transition drawn.
+    """
+    xs = np.array([x[min(t.frame, n - 1)] for t in task.transitions], dtype=float)
+    crit = np.array([t.critical for t in task.transitions], dtype=bool)
+    if len(xs) and (~crit).any():
+        ax.vlines(xs[~crit], 0, 3, colors="0.3", linewidths=0.5)
+    if crit.any():
+        ax.vlines(xs[crit], 0, 3, colors="red", linewidths=1.5)
+
+
+def _state_labels(ax: Any, task: TaskModel, x: FloatArray) -> None:
+    """Write the state letters along the top: all of them, or the ``MAX_LABELS`` widest."""
+    states = list(task.states)
+    if len(states) > MAX_LABELS:
+        width = [x[s.frames[1] + 1] - x[s.frames[0]] for s in states]
+        keep = sorted(np.argsort(width, kind="stable")[::-1][:MAX_LABELS])
+        states = [states[i] for i in keep]
+    for s in states:
+        xm = 0.5 * (x[s.frames[0]] + x[s.frames[1] + 1])
+        ax.text(xm, 3.05, s.id, ha="center", va="bottom", fontsize=8)
