@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+"""Length units apo reads and writes, and their size in metres: the one table (``task.UNITS``,
+``io.meshes.UNITS``, ``io.poses.UNITS`` are this object)."""
+
 
 @dataclass(frozen=True)
 class Tolerances:

@@ -27,10 +27,7 @@ import numpy.typing as npt
 
 from apo.contact import ContactElement, ContactKind
 from apo.geometry import Polyhedron
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "DEFAULT_MAX_ITER",

@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 
 def check_quaternion(q: npt.ArrayLike) -> FloatArray:

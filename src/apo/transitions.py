@@ -30,11 +30,11 @@ import numpy.typing as npt
 
 from apo.dof import DofGeometry, DofResult
 from apo.errors import InputFormatError
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.contact import ContactState
 
-FloatArray = npt.NDArray[np.float64]
 Six = tuple[int, int, int, int, int, int]
 Space = Literal["translation", "rotation"]
 

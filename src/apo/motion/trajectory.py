@@ -23,9 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from apo.motion.program import SkillProgram
 from apo.spatial import invert_pose, pose_from_twist, skew
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from apo.typing import FloatArray, IntArray
 
 __all__ = ["Trajectory", "min_jerk", "trajectory", "twist_from_pose"]
 

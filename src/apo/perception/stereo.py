@@ -37,10 +37,9 @@ from apo.perception.frames import (
     _read_times,
     camera_from_json,
 )
+from apo.typing import FloatArray
 
 __all__ = ["StereoFrames", "depth_from_disparity", "disparity_sgbm", "open_stereo"]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def _cv2() -> Any:

@@ -11,16 +11,16 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
+
+from apo.typing import BoolArray as BoolArray  # re-exported for the recognition stages
+from apo.typing import FloatArray as FloatArray
+from apo.typing import IntArray as IntArray
 
 if TYPE_CHECKING:
     from apo.contact import ContactFinder, ContactState
     from apo.geometry import Polyhedron
     from apo.task import TaskModel
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
 ElementKey = tuple[str, tuple[str, int], tuple[str, int]]
 """``ContactElement.key``: (kind, grasped feature, environment feature)."""
 StateKey = frozenset[ElementKey]

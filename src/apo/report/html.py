@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -56,7 +57,6 @@ __all__ = [
     "unpack_array",
 ]
 
-FloatArray = npt.NDArray[np.float64]
 
 MAX_REPLAY_FRAMES = 6000
 """Frames of the replay at most; longer demonstrations are decimated (state ends kept)."""
