@@ -71,3 +71,28 @@ for m in pkgutil.walk_packages(apo.__path__, 'apo.'):
 """
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+def test_one_pose_rule_from_input_to_contacts() -> None:
+    # Recognition, the contact search, correction and the transition analysis apply the same
+    # rule (apo.spatial.pose_defect, tol.rotation): a rotation block off by 4e-5 (a matrix
+    # printed with 5 digits) is accepted by all of them; one off by 1e-3 is refused by all,
+    # as an InputFormatError (a ValueError) naming the pose.
+    import numpy as np
+
+    from apo.contact import ContactFinder
+    from apo.errors import InputFormatError
+    from apo.recognition import check_sequence
+    from apo.shapes import box
+    from apo.spatial import check_poses
+
+    finder = ContactFinder(box([0.1, 0.1, 0.1]), box([1.0, 1.0, 0.1], center=[0, 0, -0.1]))
+    for scale, ok in ((1 + 2e-5, True), (1 + 5e-4, False)):
+        X = np.stack([np.eye(4)] * 3)
+        X[1, :3, :3] *= scale
+        for check in (check_poses, finder.find_batch, lambda x: check_sequence(None, x)):
+            if ok:
+                check(X)
+            else:
+                with pytest.raises(InputFormatError, match="1"):
+                    check(X)

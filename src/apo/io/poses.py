@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from apo.constants import UNITS
+from apo.constants import UNITS, tol
 from apo.errors import InputFormatError
 from apo.spatial import (
     matrix_from_axis_angle,
@@ -510,7 +510,7 @@ def _check_rotations(path: Path, x: FloatArray) -> FloatArray:
     """Return the 3x3 blocks of poses ``x`` (N, 4, 4); raise if one is not a rotation."""
     r = x[:, :3, :3]
     err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(r) <= 0))
+    bad = np.flatnonzero((err > tol.rotation) | (np.linalg.det(r) <= 0))
     if bad.size:
         raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
     return r
