@@ -96,3 +96,13 @@ def test_one_pose_rule_from_input_to_contacts() -> None:
             else:
                 with pytest.raises(InputFormatError, match="1"):
                     check(X)
+
+
+def test_one_definition_of_the_array_aliases_and_the_units_table() -> None:
+    for path in _modules("."):
+        if path.name in ("typing.py", "constants.py"):
+            continue
+        text = path.read_text(encoding="utf-8")
+        for alias in ("FloatArray", "IntArray", "BoolArray"):
+            assert f"\n{alias} = " not in text, f"{path}: import {alias} from apo.typing"
+        assert '"in": 0.0254' not in text, f"{path}: use apo.constants.UNITS"

@@ -158,3 +158,31 @@ def _wait_for(drv: Any, cond: Any, timeout: float = 10.0) -> None:
             return
         time.sleep(0.05)
     raise AssertionError("condition not met within the timeout")
+
+
+def test_planned_motion_track_in_chromium(browser: Any, demo_report: Path, artefacts: Path) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import Select
+
+    from apo.report.browser import open_report
+
+    folder = demo_report.parent
+    assert main(["plan", str(folder / "task.json"), "--out", str(folder / "plan")]) == 0
+    html = folder / "report-motion.html"
+    motion = str(folder / "plan" / "motion.json")
+    assert main(["report", str(folder / "task.json"), "--motion", motion, "--out", str(html)]) == 0
+    drv = browser
+    open_report(drv, html)
+    Select(drv.find_element(By.ID, "track")).select_by_visible_text("planned motion")
+    slider = drv.find_element(By.ID, "slider")
+    slider.send_keys(Keys.END)
+    _wait_for(drv, lambda: "planned motion: sample" in drv.find_element(By.ID, "cur-frame").text)
+    text = drv.find_element(By.ID, "cur-frame").text
+    n = drv.execute_script("return window.apo.data.tracks[0].t.shape[0]")
+    assert f"sample {n} of {n}" in text
+    names = drv.execute_script("return document.getElementById('view3d').data.map(t => t.name)")
+    assert "path: planned motion" in names and "grasped, planned motion" in names
+    time.sleep(0.3)
+    _shot(drv, "report-planned-motion.png", artefacts)
+    assert _severe(drv) == []

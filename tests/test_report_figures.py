@@ -91,7 +91,7 @@ def _motion_files(folder: Path, task: dict, *, with_csv: bool, with_replay: bool
     p.write_text(json.dumps(doc))
     rows = ["t,x,y,z,qw,qx,qy,qz,primitive"]
     for i in range(20):
-        rows.append(f"{0.1 * i},{i},{50 - i},0,1,0,0,0,{0 if i < 10 else 1}")
+        rows.append(f"{0.1 * i},{i},{50 - i},0,1,0,0,0,{0.0 if i < 10 else 1.0}")
     if with_csv:
         (folder / "motion.csv").write_text("\n".join(rows) + "\n")
     if with_replay:

@@ -45,9 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     # Plain imports (tools see them); inside the function because the command modules
     # import this package. One line per command, in the order `apo --help` lists them.
-    from apo.cli import analyze, contacts, demo, dof, figures, plan, report, track
+    from apo.cli import analyze, contacts, demo, dof, figures, plan, replay, report, track
 
-    for module in (dof, contacts, analyze, demo, track, report, figures, plan):
+    for module in (dof, contacts, analyze, demo, track, report, figures, plan, replay):
         module.register(sub)
     return parser
 

@@ -49,15 +49,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputFormatError(f"--format: expected svg, png or pdf, got {args.format!r}")
     if not 20 <= args.dpi <= 1200:
         raise InputFormatError(f"--dpi must be within 20..1200, got {args.dpi}")
+    from apo.outputs import OutputSet
+
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputFormatError(f"--out {out}: exists and is not a folder")
     task_path = Path(args.task)
-    doc = read_task_json(task_path)
-    G, E, _files, notes = load_models(doc, task_path.parent, units=args.model_units)
-    for n in notes:
-        print(f"apo figures: warning: {n}", file=sys.stderr)
-    paths = write_figures(doc, out, grasped=G, environment=E, formats=formats, dpi=args.dpi)
+    with OutputSet(out, label="--out") as outs:  # checks the destination before the work
+        doc = read_task_json(task_path)
+        G, E, _files, notes = load_models(doc, task_path.parent, units=args.model_units)
+        for n in notes:
+            print(f"apo figures: warning: {n}", file=sys.stderr)
+        paths = write_figures(doc, outs, grasped=G, environment=E, formats=formats, dpi=args.dpi)
     print(f"wrote {len(paths)} figure file(s) to {out}")
     for p in paths:
         print(f"  {p.name}")

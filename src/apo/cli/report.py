@@ -62,8 +62,8 @@ def read_task_json(path: Path) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo report``; return the exit code."""
-    from apo.cli.analyze import atomic_path
-    from apo.report.html import report_data, report_html
+    from apo.outputs import atomic_file
+    from apo.report.html import report_data, write_report
     from apo.report.sources import file_entry, inputs_summary, load_models, read_frames_csv
 
     task_path = Path(args.task)
@@ -100,10 +100,9 @@ def run(args: argparse.Namespace) -> int:
         inputs=inputs_summary(doc, files),
         notes=notes,
     )
-    text = report_html(data)
-    with atomic_path(out) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    with atomic_file(out) as tmp:
+        size = write_report(tmp, data)
     for n in notes:
         print(f"apo report: warning: {n}", file=sys.stderr)
-    print(f"wrote report: {out} ({len(text.encode('utf-8')) / 1e6:.1f} MB)")
+    print(f"wrote report: {out} ({size / 1e6:.1f} MB)")
     return 0

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from apo.geometry import Polyhedron
+    from apo.outputs import OutputSet
 
 __all__ = [
     "FIGURE_FORMATS",
@@ -490,7 +491,7 @@ def _draw_contacts(ax: Any, elements: Sequence[Mapping[str, Any]], length: float
 
 def write_figures(
     task: Mapping[str, Any],
-    out_dir: str | Path,
+    out_dir: str | Path | OutputSet,
     *,
     grasped: Polyhedron | None = None,
     environment: Polyhedron | None = None,
@@ -499,10 +500,24 @@ def write_figures(
 ) -> list[Path]:
     """Write every figure of ``task`` to ``out_dir`` in ``formats``; return the paths.
 
-    Names: ``dof_timeline``, ``state_graph``, ``state_<ID>`` (one per state).
+    Names: ``dof_timeline``, ``state_graph``, ``state_<ID>`` (one per state). ``out_dir``
+    may be an open :class:`apo.outputs.OutputSet` (the paths returned are then the final
+    ones, where the files appear when the set commits).
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from apo.outputs import OutputSet
+
+    if isinstance(out_dir, OutputSet):
+        outs = out_dir
+
+        def target(name: str) -> tuple[Path, Path]:
+            return outs.path(name), outs.final(name)
+    else:
+        folder = Path(out_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+
+        def target(name: str) -> tuple[Path, Path]:
+            return folder / name, folder / name
+
     figs: list[tuple[str, Any]] = [
         ("dof_timeline", lambda: timeline_figure(task)),
         ("state_graph", lambda: state_graph_figure(task)),
@@ -517,7 +532,7 @@ def write_figures(
         for name, make in figs:
             fig = make()
             for fmt in formats:
-                p = out / f"{name}.{fmt}"
-                fig.savefig(p, format=fmt, dpi=dpi, bbox_inches="tight")
-                written.append(p)
+                path, final = target(f"{name}.{fmt}")
+                fig.savefig(path, format=fmt, dpi=dpi, bbox_inches="tight")
+                written.append(final)
     return written

@@ -30,7 +30,6 @@ import functools
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError
-from apo.typing import FloatArray
+from apo.typing import BoolArray, FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -54,7 +53,9 @@ __all__ = [
     "read_report_data",
     "report_data",
     "report_html",
+    "report_parts",
     "unpack_array",
+    "write_report",
 ]
 
 
@@ -94,8 +95,8 @@ class FrameTrack:
     X_corrected: FloatArray | None = None
     residual_before: FloatArray | None = None
     residual_after: FloatArray | None = None
-    converged: npt.NDArray[np.bool_] | None = None
-    repaired: npt.NDArray[np.bool_] | None = None
+    converged: BoolArray | None = None
+    repaired: BoolArray | None = None
     source: str = "recognition"
 
 
@@ -116,6 +117,9 @@ class MotionTrack:
         What each sample is (sub-skill, segment), shown beside the slider.
     note : str
         One line about the track (e.g. the replay's verdict).
+    state_ids : sequence of str or None, length N, optional
+        Task state the object is in at each sample (e.g. the primitive's ``from`` state);
+        the page then shows that state's numbers and contacts.
     """
 
     name: str
@@ -124,6 +128,7 @@ class MotionTrack:
     X_EG: FloatArray
     labels: Sequence[str]
     note: str = ""
+    state_ids: Sequence[str | None] = ()
 
 
 def pack_array(a: npt.ArrayLike, dtype: str) -> dict[str, Any]:
@@ -241,6 +246,10 @@ def _motion_data(track: MotionTrack, scale: float) -> dict[str, Any]:
     names = list(dict.fromkeys(labels))
     pos = {v: i for i, v in enumerate(names)}
     keep = replay_indices(np.array([pos[v] for v in labels], dtype=np.int64))
+    states: list[str | None] = [None] * len(names)
+    for lab, sid in zip(labels, track.state_ids, strict=False):
+        if states[pos[lab]] is None:
+            states[pos[lab]] = sid
     return {
         "name": track.name,
         "kind": track.kind,
@@ -248,6 +257,7 @@ def _motion_data(track: MotionTrack, scale: float) -> dict[str, Any]:
         "t": pack_array(np.asarray(track.times, dtype=np.float64)[keep], "f8"),
         "pose": pack_array(poses_to_rows(np.asarray(track.X_EG)[keep], scale), "f4"),
         "labels": names,
+        "label_states": states,
         "label": pack_array(np.array([pos[labels[i]] for i in keep]), "u2"),
     }
 
@@ -332,63 +342,105 @@ def frames_from_task_dict(doc: Mapping[str, Any]) -> FrameTrack:
     return FrameTrack(times=times, state_ids=ids, X_corrected=X, source="task states")
 
 
-@functools.cache
-def _asset(name: str) -> str:
-    return resources.files("apo.report").joinpath("viewer", name).read_text(encoding="utf-8")
+_VIEWER = Path(__file__).resolve().parent / "viewer"
 
 
 @functools.cache
-def plotly_js() -> str:
-    """Return the plotly.js bundle of the installed ``plotly`` package (for inlining).
+def _asset(name: str) -> bytes:
+    """Return a file of the viewer (``apo/report/viewer/``) as bytes, ``</script`` escaped."""
+    return (_VIEWER / name).read_bytes().replace(b"</script", b"<\\/script")
+
+
+@functools.cache
+def plotly_js() -> bytes:
+    """Return the plotly.js bundle of the installed ``plotly`` package (UTF-8, for inlining).
+
+    The file is found without importing plotly (``importlib.util.find_spec``).
 
     Raises
     ------
     ApoError
-        If the ``plotly`` package (extra ``report``) is not installed.
+        If the ``plotly`` package is not installed or lacks its bundle.
     """
-    try:
-        spec = resources.files("plotly").joinpath("package_data", "plotly.min.js")
-        text = spec.read_text(encoding="utf-8")
-    except (ModuleNotFoundError, FileNotFoundError) as exc:
-        raise ApoError(
-            f"the HTML report needs the plotly package (pip install 'apo[report]'): {exc}"
-        ) from None
-    return text.replace("</script", "<\\/script")
+    import importlib.util
+
+    spec = importlib.util.find_spec("plotly")
+    locations = list(spec.submodule_search_locations or []) if spec is not None else []
+    for folder in locations:
+        bundle = Path(folder) / "package_data" / "plotly.min.js"
+        if bundle.is_file():
+            return bundle.read_bytes().replace(b"</script", b"<\\/script")
+    raise ApoError(
+        "the HTML report needs the plotly package and its bundled plotly.min.js "
+        "(pip install plotly)"
+    )
 
 
-def _json_for_script(data: Any) -> str:
-    """JSON safe inside ``<script type="application/json">`` (no ``</``, no ``<!--``)."""
-    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
-    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+def _json_for_script(data: Mapping[str, Any], task_json: str | None = None) -> bytes:
+    """JSON safe inside ``<script type="application/json">`` (no ``</``, no ``<!--``).
+
+    With ``task_json`` (the text of ``task.json``, the same document as ``data["task"]``),
+    that text is spliced in as ``"task"`` instead of serialising the task a second time.
+    """
+    if task_json is None:
+        text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    else:
+        rest = json.dumps(
+            {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
+        )
+        text = rest[:-1] + ',"task":' + task_json.strip() + "}"
+    text = text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+    return text.encode("utf-8")
+
+
+def report_parts(
+    data: Mapping[str, Any], *, title: str | None = None, task_json: str | None = None
+) -> list[bytes]:
+    """Return the page of a :func:`report_data` document as a list of UTF-8 byte strings.
+
+    Joined, they are the HTML file; :func:`write_report` writes them without joining (the
+    plotly.js bundle, most of the page, is never decoded or copied). ``task_json``: the
+    text of ``task.json`` for ``data["task"]``, embedded as is (:func:`_json_for_script`).
+    """
+    src = str(data["task"].get("source") or "demonstration")
+    text = title or f"apo report: {src}"  # escaped by hand: importing html costs 15 ms
+    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    parts = {
+        b"__APO_TITLE__": text.encode("utf-8"),
+        b"__APO_CSS__": _asset("report.css"),
+        b"__APO_PLOTLY__": plotly_js(),
+        b"__APO_DATA__": _json_for_script(data, task_json),
+        b"__APO_JS__": _asset("report.js"),
+    }
+    out: list[bytes] = []
+    rest = (_VIEWER / "report.html").read_bytes()
+    for key in _PLACEHOLDERS:
+        head, sep, rest = rest.partition(key.encode("ascii"))
+        if not sep:
+            raise ApoError(f"report template: placeholder {key} missing")
+        out += [head, parts[sep]]
+    out.append(rest)
+    return out
 
 
 def report_html(data: Mapping[str, Any], *, title: str | None = None) -> str:
     """Return the self-contained HTML page of a :func:`report_data` document."""
-    import html
-
-    src = str(data["task"].get("source") or "demonstration")
-    parts = {
-        "__APO_TITLE__": html.escape(title or f"apo report: {src}"),
-        "__APO_CSS__": _asset("report.css"),
-        "__APO_PLOTLY__": plotly_js(),
-        "__APO_DATA__": _json_for_script(data),
-        "__APO_JS__": _asset("report.js").replace("</script", "<\\/script"),
-    }
-    out: list[str] = []
-    rest = _asset("report.html")
-    for key in _PLACEHOLDERS:
-        head, sep, rest = rest.partition(key)
-        if not sep:
-            raise ApoError(f"report template: placeholder {key} missing")
-        out += [head, parts[key]]
-    out.append(rest)
-    return "".join(out)
+    return b"".join(report_parts(data, title=title)).decode("utf-8")
 
 
-def write_report_file(
-    path: str | Path, data: Mapping[str, Any], *, title: str | None = None
-) -> Path:
-    """Write :func:`report_html` of ``data`` to ``path`` (UTF-8); return the path."""
-    p = Path(path)
-    p.write_text(report_html(data, title=title), encoding="utf-8")
-    return p
+def write_report(
+    path: str | Path,
+    data: Mapping[str, Any],
+    *,
+    title: str | None = None,
+    task_json: str | None = None,
+) -> int:
+    """Write the page of a :func:`report_data` document to ``path``; return its size in bytes.
+
+    Not atomic by itself: callers write into an :class:`apo.outputs.OutputSet` or through
+    :func:`apo.outputs.atomic_file`.
+    """
+    parts = report_parts(data, title=title, task_json=task_json)
+    with open(path, "wb") as fh:
+        fh.writelines(parts)
+    return sum(len(b) for b in parts)

@@ -57,8 +57,10 @@ def _primitive_label(p: Mapping[str, Any]) -> str:
 
 def read_pose_track_csv(
     path: str | Path, *, units: str, labels: Sequence[str] = ()
-) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Read a ``t,x,y,z,qw,qx,qy,qz[,primitive]`` CSV; return times, poses (metres), labels.
+) -> tuple[np.ndarray, np.ndarray, list[str], list[int | None]]:
+    """Read a ``t,x,y,z,qw,qx,qy,qz[,primitive]`` CSV.
+
+    Returns times, poses (metres), a label per sample and its primitive index (or None).
 
     Raises
     ------
@@ -93,14 +95,21 @@ def read_pose_track_csv(
         if not n > 0:
             raise InputFormatError(f"{p}: line {i + 2}: zero quaternion")
         X[i] = pose_from_position_quaternion(v[1:4] * k, v[4:] / n)
-    out_labels: list[str] = []
-    for r in rows:
-        prim = (r.get("primitive") or "").strip()
-        if prim.isdigit() and int(prim) < len(labels):
-            out_labels.append(labels[int(prim)])
-        else:
-            out_labels.append(prim or p.stem)
-    return vals[:, 0], X, out_labels
+    prims = [_primitive_index(r.get("primitive"), len(labels)) for r in rows]
+    out_labels = [
+        labels[k] if k is not None else (r.get("primitive") or "").strip() or p.stem
+        for k, r in zip(prims, rows, strict=True)
+    ]
+    return vals[:, 0], X, out_labels, prims
+
+
+def _primitive_index(value: str | None, n: int) -> int | None:
+    """Primitive of a sample (column ``primitive``: an index, "3" or "3.0"), None if none."""
+    try:
+        k = float((value or "").strip())
+    except ValueError:
+        return None
+    return int(k) if k.is_integer() and 0 <= k < n else None
 
 
 def _targets_track(doc: Mapping[str, Any], k: float, labels: list[str]) -> MotionTrack:
@@ -154,15 +163,17 @@ def read_motion_tracks(
         munits = str(doc["units"])
         k = UNITS[munits]
         labels = [_primitive_label(q) for q in doc["primitives"]]
-    except (KeyError, TypeError) as exc:
+        from_states = [q.get("from") for q in doc["primitives"]]
+    except (KeyError, TypeError, AttributeError) as exc:
         raise InputFormatError(f"{p}: missing or bad field {exc}") from None
     del units  # the tracks are in metres; the page converts to the task's units
     tracks: list[MotionTrack] = []
     files: list[dict[str, Any]] = []
     csv_path = p.with_name("motion.csv")
     if csv_path.is_file():
-        t, X, lab = read_pose_track_csv(csv_path, units=munits, labels=labels)
-        tracks.append(MotionTrack("planned motion", "planned", t, X, lab))
+        t, X, lab, prim = read_pose_track_csv(csv_path, units=munits, labels=labels)
+        sids = [None if q is None else from_states[q] for q in prim]
+        tracks.append(MotionTrack("planned motion", "planned", t, X, lab, state_ids=sids))
         files.append(file_entry("planned trajectory", csv_path))
     else:
         try:
@@ -171,7 +182,8 @@ def read_motion_tracks(
             raise InputFormatError(f"{p}: missing or bad field {exc}") from None
     rpath = p.with_name("replay.csv")
     if rpath.is_file():
-        t, X, lab = read_pose_track_csv(rpath, units=munits, labels=labels)
+        t, X, lab, prim = read_pose_track_csv(rpath, units=munits, labels=labels)
+        sids = [None if q is None else from_states[q] for q in prim]
         note = ""
         vpath = p.with_name("replay.json")
         if vpath.is_file():
@@ -179,6 +191,8 @@ def read_motion_tracks(
             if isinstance(verdict, dict):
                 note = str(verdict.get("verdict") or verdict.get("summary") or "")
             files.append(file_entry("replay verdict", vpath))
-        tracks.append(MotionTrack("simulated execution", "executed", t, X, lab, note=note))
+        tracks.append(
+            MotionTrack("simulated execution", "executed", t, X, lab, note=note, state_ids=sids)
+        )
         files.append(file_entry("executed trajectory", rpath))
     return tracks, files

@@ -21,6 +21,7 @@ import numpy.typing as npt
 from apo.errors import ApoError, InputFormatError
 from apo.outputs import sha256_file
 from apo.report.html import FrameTrack
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -59,7 +60,7 @@ def frames_from_recognition(
         X_observed = rec.X_observed
     n = len(rec.state_of_frame)
 
-    def poses(X: npt.ArrayLike | None) -> npt.NDArray[np.float64] | None:
+    def poses(X: npt.ArrayLike | None) -> FloatArray | None:
         a = None if X is None else np.asarray(X, dtype=np.float64)
         return a if a is not None and a.shape == (n, 4, 4) else None  # (0, 4, 4): not kept
 
@@ -78,7 +79,7 @@ def frames_from_recognition(
 
 def _pose_block(
     rows: list[dict[str, str]], prefix: str, unit: str, k: float, where: str
-) -> npt.NDArray[np.float64] | None:
+) -> FloatArray | None:
     """Poses from columns ``<prefix>x_<unit> ... <prefix>qz``; None if the columns are absent."""
     from apo.spatial import pose_from_position_quaternion
 
@@ -251,21 +252,23 @@ def recognition_report(
     environment: Polyhedron | None,
     X_observed: npt.ArrayLike | None = None,
     files: Sequence[Mapping[str, Any]] = (),
-) -> str:
-    """Return the HTML report of a recognition (what ``apo analyze`` writes as report.html).
+    doc: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Return the report document of a recognition (``apo analyze`` writes it as report.html).
 
-    Costs a :func:`apo.task.task_to_dict`, the packing of the per-frame arrays and the
-    inlining of plotly.js: a few tens of milliseconds (``docs/report.md``).
+    Write it with :func:`apo.report.html.write_report`. ``doc`` is ``task_to_dict(rec.task)``
+    where the caller has it already. Costs the packing of the per-frame arrays: a few
+    milliseconds (``docs/report.md``, ``benchmarks/report.py``).
     """
-    from apo.report.html import report_data, report_html
+    from apo.report.html import report_data
     from apo.task import task_to_dict
 
-    doc = task_to_dict(rec.task)
-    data = report_data(
+    if doc is None:
+        doc = task_to_dict(rec.task)
+    return report_data(
         doc,
         grasped=grasped,
         environment=environment,
         frames=frames_from_recognition(rec, X_observed),
         inputs=inputs_summary(doc, files),
     )
-    return report_html(data)

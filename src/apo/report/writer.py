@@ -12,8 +12,9 @@ call :func:`write_recognition`; any program using the library can do the same::
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,8 +28,12 @@ if TYPE_CHECKING:
     from apo.recognition import Recognition
     from apo.task import ModelRef
 
+ReportWriter = Callable[[Path, Mapping[str, Any], str], object]
+"""``write(path, task_doc, task_json)``: writes ``report.html`` of a recognition to ``path``."""
+
 __all__ = [
     "PlotWorker",
+    "ReportWriter",
     "frames_csv",
     "model_ref",
     "model_ref_as",
@@ -199,11 +204,13 @@ def write_recognition(
     plot: bool = True,
     title: str | None = None,
     worker: PlotWorker | None = None,
-    report: Callable[[], str] | None = None,
+    report: ReportWriter | None = None,
 ) -> dict[str, Path]:
     """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) into ``outs``.
 
-    ``report`` returns the text of ``report.html`` (see :func:`report_maker`); ``worker``
+    ``report(path, task_doc, task_json)`` writes ``report.html`` to ``path`` given the task
+    document and its JSON text as written to ``task.json`` (serialised once, embedded as
+    is; see :func:`report_maker`); ``worker``
     draws the plot while this process writes the rest. Returns ``{what: final path}``
     (``task``, ``frames``, ``plot``, ``report``); the files appear there when ``outs`` commits.
     """
@@ -213,7 +220,9 @@ def write_recognition(
     want_plot = plot and bool(rec.task.states)
     png = outs.path("dof.png")
     submitted = want_plot and worker is not None and worker.submit(rec, png, title)
-    written["task"] = outs.write_json("task.json", task_to_dict(rec.task))
+    doc = task_to_dict(rec.task)
+    task_json = json.dumps(doc, indent=2) + "\n"  # as outs.write_json; reused by the report
+    written["task"] = outs.write_text("task.json", task_json)
     written["frames"] = outs.write_text("frames.csv", frames_csv(rec))
     if want_plot:
         if not (submitted and worker is not None and worker.result(png)):
@@ -222,19 +231,24 @@ def write_recognition(
             plot_dof(rec.task, png, times=rec.times, title=title)
         written["plot"] = outs.final("dof.png")
     if report is not None:
-        written["report"] = outs.write_text("report.html", report())
+        report(outs.path("report.html"), doc, task_json)
+        written["report"] = outs.final("report.html")
     return written
 
 
 def report_maker(
     rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
-) -> Callable[[], str]:
-    """Return a callable that renders ``report.html`` of ``rec`` (inputs: files to hash)."""
+) -> ReportWriter:
+    """Return a :data:`ReportWriter` for ``report.html`` of ``rec`` (inputs: files to hash)."""
 
-    def make() -> str:
+    def write(path: Path, doc: Mapping[str, Any], task_json: str) -> int:
+        from apo.report.html import write_report
         from apo.report.sources import file_entry, recognition_report
 
         files = [file_entry("demonstration", p) for p in inputs if p.is_file()]
-        return recognition_report(rec, grasped=G, environment=E, X_observed=X_observed, files=files)
+        data = recognition_report(
+            rec, grasped=G, environment=E, X_observed=X_observed, files=files, doc=doc
+        )
+        return write_report(path, data, task_json=task_json)
 
-    return make
+    return write

@@ -106,7 +106,8 @@
       ghost: function () { return null; },
       solidName: 'grasped, ' + tr.name, ghostName: '',
       state: function (i) {
-        var k = stateIndex[tr.labels[lab[i]]];
+        var sid = tr.label_states ? tr.label_states[lab[i]] : null;
+        var k = sid === null || sid === undefined ? undefined : stateIndex[sid];
         return k === undefined ? null : k;
       },
       label: function (i) { return tr.labels[lab[i]]; },
@@ -166,6 +167,7 @@
   var Gtri = G ? triIdx(G) : null;
   var Etri = E ? triIdx(E) : null;
   var EP = E ? posed(E, null) : null;
+  var EE = E ? edgeLines(E, EP) : null;  // static: built once, same arrays every redraw
   var sceneScale = Math.min(G ? G.scale : Infinity, E ? E.scale : Infinity);
   if (!isFinite(sceneScale)) { sceneScale = 20 * (T.threshold || 1); }
   var normalLen = 0.14 * sceneScale;
@@ -219,9 +221,8 @@
                   i: Etri.i, j: Etri.j, k: Etri.k, color: '#b0b7c0',
                   opacity: show.envClear ? 0.35 : 1, flatshading: true, lighting: lighting,
                   hoverinfo: 'name', showlegend: true });
-      var ee = edgeLines(E, EP);
-      data.push({ type: 'scatter3d', mode: 'lines', name: 'environment edges', x: ee.x, y: ee.y,
-                  z: ee.z, line: { color: '#4a5360', width: 2 }, hoverinfo: 'skip',
+      data.push({ type: 'scatter3d', mode: 'lines', name: 'environment edges', x: EE.x, y: EE.y,
+                  z: EE.z, line: { color: '#4a5360', width: 2 }, hoverinfo: 'skip',
                   showlegend: false });
     }
     if (G) {
@@ -280,7 +281,6 @@
     }
     if (show.paths) {
       tracks.forEach(function (t, k) {
-        if (k !== cur.track && t.kind === 'demonstration' && cur.track !== 0) { /* keep */ }
         data.push({ type: 'scatter3d', mode: 'lines', name: 'path: ' + t.name,
                     x: paths[k].x, y: paths[k].y, z: paths[k].z,
                     line: { color: TRACK_COLORS[k % TRACK_COLORS.length], width: k === cur.track ? 4 : 2,
@@ -596,8 +596,8 @@
     var det = document.getElementById('cur-detail');
     var demo = cur.track === 0;
     var head = demo ? 'frame ' + frame[i] + ' of ' + F.n_frames + ', t = ' + fmt(tr.t[i], 3) + ' s'
-                    : tr.name + ': sample ' + (i + 1) + ' of ' + tr.n + ', t = ' + fmt(tr.t[i], 3) + ' s, ' + esc(tr.label(i));
-    document.getElementById('cur-frame').textContent = head.replace(/<[^>]+>/g, '');
+                    : tr.name + ': sample ' + (i + 1) + ' of ' + tr.n + ', t = ' + fmt(tr.t[i], 3) + ' s, ' + tr.label(i);
+    document.getElementById('cur-frame').textContent = head;
     if (si === null) {
       letter.textContent = '–'; letter.style.background = '#607d8b';
       det.innerHTML = '<p>' + esc(tr.label(i)) + '</p>';
@@ -605,6 +605,8 @@
     }
     var s = states[si];
     letter.textContent = s.id; letter.style.background = stateColor[si];
+    var prefix = demo ? '' : '<div class="kv"><b>primitive</b> ' + esc(tr.label(i)) + '</div>' +
+                 '<div class="kv muted">the object is in this state while the primitive runs</div>';
     var f = s.fig25, S = s.singular ? 'S' : '';
     var h = '<table class="eight" id="cur-fig25"><tr><th colspan="3">translation ' + S + '</th>' +
             '<th colspan="3">rotation ' + S + '</th><th colspan="2">restraining</th></tr>' +
@@ -634,7 +636,7 @@
            ', ' + el.normals.length + ' normal' + (sing ? 's (singular)' : '') + '</li>';
     });
     h += '</ul>';
-    det.innerHTML = h;
+    det.innerHTML = prefix + h;
   }
   function highlightState(si) {
     Array.prototype.forEach.call(document.querySelectorAll('#states-table tr.clickable'), function (r) {
