@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 from apo.outputs import OutputSet
 from apo.outputs import atomic_file as atomic_path
@@ -18,6 +19,7 @@ from apo.report.writer import (
     model_ref,
     report_maker,
     sha256_of,
+    task_document,
     write_recognition,
 )
 
@@ -31,6 +33,8 @@ __all__ = [
     "atomic_path",
     "frames_csv",
     "model_ref",
+    "print_result",
+    "print_written",
     "register",
     "report",
     "report_maker",
@@ -41,7 +45,7 @@ __all__ = [
 #: Inputs with at least this many frames get a progress bar (on stderr).
 PROGRESS_MIN_FRAMES = 500
 
-_UNITS = ("mm", "cm", "m", "in")
+_UNITS = ("mm", *(u for u in UNITS if u != "mm"))  # apo.constants.UNITS, mm first
 
 
 def register(subparsers: Any) -> None:
@@ -75,7 +79,14 @@ def register(subparsers: Any) -> None:
         "--threshold",
         type=float,
         metavar="D",
-        help="contact distance threshold in --units (default: scale-aware)",
+        help="contact distance threshold in --units (default: scale-aware, and at least "
+        "3.5 standard deviations of the pose noise)",
+    )
+    p.add_argument(
+        "--noise",
+        metavar="S[,DEG]",
+        help="pose noise per axis: position standard deviation in --units and rotation in "
+        "degrees (one number: both; default: estimated from the poses)",
     )
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
     p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
@@ -83,6 +94,21 @@ def register(subparsers: Any) -> None:
 
     add_tracking_options(p)
     p.set_defaults(func=run)
+
+
+def parse_noise(text: str | None, unit: float) -> tuple[float, float] | None:
+    """Parse ``--noise S`` or ``--noise S,DEG`` into (metres, radians) per axis."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        vals = [float(v) for v in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise InputFormatError(f"--noise: expected S or S,DEG (non-negative numbers), got {text!r}")
+    pos, deg = vals[0], vals[-1]
+    return pos * unit, math.radians(deg)
 
 
 def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
@@ -101,10 +127,17 @@ def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, 
 
 def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None:
     """Print the table (or the JSON) and where the outputs went."""
-    if as_json:
-        from apo.task import task_to_dict
+    print_result(rec, as_json=as_json)
+    print_written(written)
 
-        print(json.dumps(task_to_dict(rec.task), indent=2))
+
+def print_result(rec: Recognition, *, as_json: bool, task_text: str | None = None) -> None:
+    """Print the Fig. 25-style table and a summary, or ``task.json`` (``task_text`` if given)."""
+    if as_json:
+        from apo.report.writer import task_document
+
+        text = task_text if task_text is not None else task_document(rec)[1]
+        print(text, end="", flush=True)
         return
     from apo.report.table import render_table
 
@@ -114,10 +147,34 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
     print(
         f"{n} frames, {len(rec.task.states)} states, {len(rec.task.transitions)} transitions; "
         f"pose correction failed at {failed} frame(s); {int(rec.repaired.sum())} frame(s) "
-        f"repaired"
+        f"repaired",
+        flush=True,
     )
+
+
+def print_written(written: dict[str, Path]) -> None:
+    """Print ``wrote <what>: <path>`` per output file."""
     for k, p in written.items():
         print(f"wrote {k}: {p}")
+
+
+def _warn_scale(
+    G: Polyhedron,
+    E: Polyhedron,
+    X_EG: Any,
+    units: str,
+    threshold: float | None,
+    paths: tuple[Path, Path],
+) -> None:
+    """Print a warning if the poses do not fit the models' size (exit status unchanged)."""
+    from apo.io.meshes import MESH_SUFFIXES
+    from apo.io.plausibility import scale_warnings
+
+    meshes = any(MESH_SUFFIXES.get(p.suffix.lower()) != "step" for p in paths)
+    for line in scale_warnings(
+        G, E, X_EG, units=units, threshold=threshold, models_follow_units=meshes
+    ):
+        print(f"apo analyze: warning: {line}", file=sys.stderr)
 
 
 def _load_models(
@@ -154,17 +211,17 @@ def run(args: argparse.Namespace) -> int:
     worker = None if args.no_plot else PlotWorker()
     try:
         with OutputSet(out, label="--out") as outs:  # checked and locked before the work
-            rec, written = _run(args, demo, outs, worker)
+            written = _run(args, demo, outs, worker)
     finally:
         if worker is not None:
             worker.close()
-    report(rec, written, as_json=args.json)
+    print_written(written)
     return 0
 
 
 def _run(
     args: argparse.Namespace, demo: Path, outs: OutputSet, worker: PlotWorker | None
-) -> tuple[Recognition, dict[str, Path]]:
+) -> dict[str, Path]:
     from apo.io import poses
     from apo.recognition import recognize_frames
 
@@ -178,9 +235,12 @@ def _run(
         from apo.cli.track import reject_tracking_options
 
         reject_tracking_options(args, demo)
-        dem = poses.load_demonstration(
-            demo, units=args.units, grasped=args.grasped, environment=args.environment
-        )
+        from apo.cli import warnings_to_stderr
+
+        with warnings_to_stderr("apo analyze"):
+            dem = poses.load_demonstration(
+                demo, units=args.units, grasped=args.grasped, environment=args.environment
+            )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
@@ -188,6 +248,8 @@ def _run(
     threshold = None if args.threshold is None else args.threshold * UNITS[units]
     if threshold is not None and not threshold > 0:
         raise InputFormatError(f"--threshold must be positive, got {args.threshold}")
+    noise = parse_noise(args.noise, UNITS[units])
+    _warn_scale(G, E, dem.X_EG, units, threshold, (gp, ep))
     progress, close = progress_bar(len(dem.X_EG), "contacts")
     try:
         rec = recognize_frames(
@@ -196,6 +258,7 @@ def _run(
             dem.times,
             dem.X_EG,
             threshold=threshold,
+            noise=noise,
             progress=progress,
             units=units,
             models=(model_ref(gp, out), model_ref(ep, out)),
@@ -203,12 +266,14 @@ def _run(
         )
     finally:
         close()
-    written = write_recognition(
+    task = task_document(rec)
+    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
+    return write_recognition(
         outs,
         rec,
         plot=not args.no_plot,
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
+        task=task,
     )
-    return rec, written
