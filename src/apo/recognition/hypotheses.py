@@ -29,6 +29,7 @@ from apo.contact import ContactElement, ContactFinder, ContactKind, ContactState
 from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
 from apo.recognition.correction import CORRECTION_MAX_ITER, CORRECTION_TOL
+from apo.recognition.distances import element_distances
 from apo.recognition.types import FloatArray, Scene
 
 __all__ = [
@@ -137,6 +138,8 @@ def rescue(
             rank = (-touched, found[1])
             if best is None or rank < (best[0], best[1]):
                 best = (-touched, found[1], found[0], int(f))
+        if best is not None:  # frames come best first: the first that gives one decides
+            break
     return None if best is None else (best[2], best[3], best[1])
 
 
@@ -159,12 +162,13 @@ def _correct(
 def _explains(scene: Scene, X: FloatArray, observed: ContactState) -> int:
     """Count the observed pairs that touch at ``X``; -1 if some pair is no longer near.
 
-    Near: within the recognition threshold (``scene.finder``); touching: within the tight
-    one (``scene.exact``).
+    Near: the two features within the recognition threshold; touching: within the tight
+    threshold of ``scene.exact`` (feature distances, ``element_distances``).
     """
-    pairs = [(e.grasped, e.environment) for e in observed.elements]
-    near = scene.finder.find(X).touching
-    if not all(pr in near for pr in pairs):
+    if not observed.elements:
+        return 0
+    keys = [e.key for e in observed.elements]
+    d = element_distances(scene.grasped, scene.environment, X[None], keys)[0]
+    if (d > scene.theta).any():
         return -1
-    touching = scene.exact.find(X).touching
-    return sum(pr in touching for pr in pairs)
+    return int((d <= float(scene.exact.threshold)).sum())
