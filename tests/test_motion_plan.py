@@ -81,7 +81,11 @@ def check_program_structure(task: TaskModel, program: SkillProgram) -> None:
     flat = [(i, u) for i, t in enumerate(task.transitions) for u in t.subskills]
     for p, (i, u) in zip(skills, flat, strict=True):
         assert p.transition == i
-        np.testing.assert_allclose(p.direction, u.direction, atol=1e-12)
+        # the task's direction, or its reverse when the demonstration clearly moves against it
+        flipped = p.source == "poses" and u.source != "poses"
+        np.testing.assert_allclose(
+            p.direction, -u.direction if flipped else u.direction, atol=1e-12
+        )
         assert (p.from_state, p.to_state) == (
             task.transitions[i].from_id,
             task.transitions[i].to_id,
@@ -184,6 +188,20 @@ def test_approach_stops_at_the_standoff(name: str) -> None:
     np.testing.assert_allclose(X_c[:3, 3] - X_s[:3, 3], pp.standoff * first.direction, atol=1e-12)
     assert first.stop.expected == pytest.approx(pp.standoff)
     assert first.stop.travel == pytest.approx(pp.standoff + pp.travel_margin)
+
+
+def test_direction_against_the_demonstration_is_reversed() -> None:
+    # a noisy T-peg whose rotational slide E -> F gets the wrong sign from the contacts
+    demo = synthetic.add_noise(synthetic.peg_in_hole_2d(), sigma_mm=0.5, sigma_deg=0.5, seed=3)
+    task = recognize(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm")
+    program = plan(task)
+    check_program_structure(task, program)
+    for p in program.primitives:
+        if p.kind in SUBSKILL_KINDS and p.space == "rotation":
+            # the motion to the target never goes backwards about the primitive's axis
+            start = program.primitives[p.index - 1].target.X_EG
+            w = Rotation.from_matrix(p.target.X_EG[:3, :3] @ start[:3, :3].T).as_rotvec()
+            assert w @ p.direction > -0.5 * PlanParameters().angular_margin
 
 
 @pytest.mark.parametrize("name", DEMOS)

@@ -37,8 +37,7 @@ from apo.motion.program import (
 )
 from apo.spatial import invert_pose, matrix_from_axis_angle
 from apo.task import Element, ModelRef, State, SubSkill, TaskModel
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = ["plan"]
 
@@ -273,6 +272,30 @@ class _Cursor:
     out: list[Primitive] = field(default_factory=list)
 
 
+def _checked_sign(
+    u: SubSkill,
+    d: FloatArray | None,
+    X_start: FloatArray,
+    X_target: FloatArray,
+    center: FloatArray,
+    pp: PlanParameters,
+) -> tuple[FloatArray | None, str]:
+    """Return the sub-skill's direction, reversed if the demonstration clearly moves against it.
+
+    The sign from the contacts is reliable in one dimension but only indicative inside a
+    larger subspace (``docs/transitions.md``); when the demonstrated motion from the
+    primitive's start to its target goes the other way by more than half the travel margin,
+    the observed sign wins and ``source`` becomes ``"poses"``.
+    """
+    if d is None:
+        return None, u.source
+    if u.space == "rotation":
+        s, limit = float(_rotvec(X_start, X_target) @ d), 0.5 * pp.angular_margin
+    else:
+        s, limit = float((center - _moved(X_start, X_target, center)) @ d), 0.5 * pp.travel_margin
+    return (-d, "poses") if s < -limit else (d, u.source)
+
+
 def _subskill_primitive(
     task: TaskModel,
     i: int,
@@ -295,6 +318,8 @@ def _subskill_primitive(
     center = X_target[:3, 3].copy() if c0 is None else c0
     if rot and u.point is not None and d is not None:
         center = u.point + ((center - u.point) @ d) * d
+    d, source = _checked_sign(u, d, X_start, X_target, center, pp)
+    dz = np.zeros(3) if d is None else d
     split = _Split()
     # contacts kept during the motion: all of the start state's, except those a release
     # breaks (a slide keeps its support until the very end, where the support ends)
@@ -330,7 +355,7 @@ def _subskill_primitive(
         direction=dz,
         point=None if not rot or u.point is None else np.asarray(u.point, dtype=float),
         subspace=np.asarray(u.subspace, dtype=float).reshape(-1, 3),
-        source=u.source,
+        source=source,
         target=Target(state=b.id, elements=b.elements, X_EG=X_target),
         stop=_travel(kind, rot, expected, pp),
         compliance=split.compliance(center),
