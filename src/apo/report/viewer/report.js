@@ -871,7 +871,11 @@
         var pt = ev.points && ev.points[0];
         if (pt && pt.customdata >= 0) { seekState(pt.customdata); }
       });
-      return seek(0);
+      // the plots were drawn at frame 0: fill the panels without drawing the 3D view again
+      fillNow();
+      highlightState(tracks[0].state(0));
+      document.body.dataset.state = states[tracks[0].state(0)].id;
+      document.body.dataset.frame = String(frame[0]);
     }).then(function () {
       window.apoReady = performance.now();
       document.body.dataset.ready = '1';
