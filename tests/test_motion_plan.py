@@ -81,7 +81,11 @@ def check_program_structure(task: TaskModel, program: SkillProgram) -> None:
     flat = [(i, u) for i, t in enumerate(task.transitions) for u in t.subskills]
     for p, (i, u) in zip(skills, flat, strict=True):
         assert p.transition == i
-        np.testing.assert_allclose(p.direction, u.direction, atol=1e-12)
+        # the task's direction, or its reverse when the demonstration clearly moves against it
+        flipped = p.source == "poses" and u.source != "poses"
+        np.testing.assert_allclose(
+            p.direction, -u.direction if flipped else u.direction, atol=1e-12
+        )
         assert (p.from_state, p.to_state) == (
             task.transitions[i].from_id,
             task.transitions[i].to_id,
@@ -184,6 +188,38 @@ def test_approach_stops_at_the_standoff(name: str) -> None:
     np.testing.assert_allclose(X_c[:3, 3] - X_s[:3, 3], pp.standoff * first.direction, atol=1e-12)
     assert first.stop.expected == pytest.approx(pp.standoff)
     assert first.stop.travel == pytest.approx(pp.standoff + pp.travel_margin)
+
+
+def test_direction_against_the_demonstration_is_reversed() -> None:
+    # a noisy T-peg whose rotational slide E -> F gets the wrong sign from the contacts
+    demo = synthetic.add_noise(synthetic.peg_in_hole_2d(), sigma_mm=0.5, sigma_deg=0.5, seed=3)
+    task = recognize(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm")
+    program = plan(task)
+    check_program_structure(task, program)
+    for p in program.primitives:
+        if p.kind in SUBSKILL_KINDS and p.space == "rotation":
+            # the motion to the target never goes backwards about the primitive's axis
+            start = program.primitives[p.index - 1].target.X_EG
+            w = Rotation.from_matrix(p.target.X_EG[:3, :3] @ start[:3, :3].T).as_rotvec()
+            assert w @ p.direction > -0.5 * PlanParameters().angular_margin
+
+
+@pytest.mark.parametrize("name", DEMOS)
+def test_approach_crosses_over_above_start_and_standoff(name: str) -> None:
+    program = plan(_task(name))
+    approach, first = program.primitives[0], program.primitives[1]
+    up = -first.direction
+    legs = [program.start_X_EG, *approach.via, approach.target.X_EG]
+    levels = [float(up @ X[:3, 3]) for X in legs]
+    top = max(levels)
+    # rise (or stay), cross at the top level, then come straight down to the stand-off
+    assert all(lv == pytest.approx(top) for lv in levels[1:-1])
+    assert top >= levels[0] - 1e-12 and top >= levels[-1] - 1e-12
+    if approach.via:
+        np.testing.assert_allclose(approach.via[-1][:3, :3], legs[-1][:3, :3], atol=1e-12)
+        drop = legs[-1][:3, 3] - approach.via[-1][:3, 3]
+        np.testing.assert_allclose(drop, np.linalg.norm(drop) * first.direction, atol=1e-12)
+    np.testing.assert_allclose(approach.direction, first.direction, atol=1e-9)
 
 
 def test_align_directions_are_the_newly_constrained_ones() -> None:

@@ -856,6 +856,20 @@ def _unit_vectors(rng: np.random.Generator, n: int) -> FloatArray:
     return out
 
 
+def _drift(rng: np.random.Generator, times: FloatArray, tau: float) -> FloatArray:
+    """Unit-variance Ornstein-Uhlenbeck process (n, 3) at ``times`` (s), time constant tau."""
+    n = len(times)
+    out = np.zeros((n, 3))
+    if n == 0:
+        return out
+    out[0] = rng.normal(size=3)
+    dt = np.diff(np.asarray(times, dtype=np.float64))
+    a = np.exp(-np.maximum(dt, 0.0) / max(tau, 1e-9))
+    for i in range(1, n):
+        out[i] = a[i - 1] * out[i - 1] + math.sqrt(1.0 - a[i - 1] ** 2) * rng.normal(size=3)
+    return out
+
+
 def add_noise(
     demo: SyntheticDemo,
     *,
@@ -866,8 +880,11 @@ def add_noise(
     seed: int | np.random.Generator | None = 0,
     outlier_mm: float = 20.0,
     outlier_deg: float = 15.0,
+    drift_mm: float = 0.0,
+    drift_deg: float = 0.0,
+    drift_time: float = 2.0,
 ) -> SyntheticDemo:
-    """Observed poses with pose noise, outliers and dropped frames; the truth stays.
+    """Observed poses with pose noise, drift, outliers and dropped frames; the truth stays.
 
     Parameters
     ----------
@@ -892,6 +909,14 @@ def add_noise(
         result.
     outlier_mm, outlier_deg : float
         Typical size of an outlier's error, millimetres and degrees.
+    drift_mm, drift_deg : float
+        Standard deviation per axis of a temporally correlated error (a slow drift, as a
+        tracker's bias wanders), millimetres and degrees: a Gaussian process with an
+        exponential correlation of time constant ``drift_time`` seconds (an
+        Ornstein-Uhlenbeck process, stationary from the first frame), added to the white
+        noise.
+    drift_time : float
+        Correlation time of the drift, seconds.
 
     Returns
     -------
@@ -904,7 +929,9 @@ def add_noise(
         Negative sigmas or sizes, or rates outside [0, 1].
     """
     for label, v in (("sigma_mm", sigma_mm), ("sigma_deg", sigma_deg),
-                     ("outlier_mm", outlier_mm), ("outlier_deg", outlier_deg)):  # fmt: skip
+                     ("outlier_mm", outlier_mm), ("outlier_deg", outlier_deg),
+                     ("drift_mm", drift_mm), ("drift_deg", drift_deg),
+                     ("drift_time", drift_time)):  # fmt: skip
         if not (math.isfinite(v) and v >= 0):
             raise ValueError(f"{label} must be a non-negative number, got {v}")
     for label, v in (("outlier_rate", outlier_rate), ("drop_rate", drop_rate)):
@@ -916,6 +943,9 @@ def add_noise(
     cg = demo.grasped.vertices.mean(axis=0)
     dp = rng.normal(scale=sigma_mm * 1e-3, size=(n, 3))
     rv = rng.normal(scale=math.radians(sigma_deg), size=(n, 3))
+    if drift_mm > 0 or drift_deg > 0:
+        dp += _drift(rng, demo.times, drift_time) * (drift_mm * 1e-3)
+        rv += _drift(rng, demo.times, drift_time) * math.radians(drift_deg)
     out = rng.random(n) < outlier_rate
     k = int(out.sum())
     if k:
@@ -943,6 +973,9 @@ def add_noise(
         "drop_rate": float(drop_rate),
         "outlier_mm": float(outlier_mm),
         "outlier_deg": float(outlier_deg),
+        "drift_mm": float(drift_mm),
+        "drift_deg": float(drift_deg),
+        "drift_time": float(drift_time),
         "seed": seed if isinstance(seed, int) or seed is None else "generator",
         "about": "vertex centroid of the grasped object, environment axes",
         "n_outliers": int((out & keep).sum()),
@@ -960,4 +993,74 @@ def add_noise(
         frame_ids=demo.frame_ids[keep].copy(),
         outliers=(demo.outliers | out)[keep],
         meta=meta,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Randomised variants
+# --------------------------------------------------------------------------------------------
+
+#: The scripted demonstrations :func:`random_variant` draws from, with the ranges of their
+#: parameters: frame count (speed), approach angle (tilt or yaw, degrees), stand-off margin.
+VARIANTS: dict[str, tuple[Any, tuple[int, int], str, tuple[float, float]]] = {
+    "peg_in_hole_2d": (peg_in_hole_2d, (40, 120), "tilt_deg", (12.0, 27.0)),
+    "square_peg_in_hole": (square_peg_in_hole, (35, 110), "yaw_deg", (6.0, 30.0)),
+    "block_on_table_to_corner": (block_on_table_to_corner, (30, 90), "yaw_deg", (8.0, 40.0)),
+    "block_tipping": (block_tipping, (22, 70), "tilt_deg", (15.0, 50.0)),
+}
+
+
+def random_variant(
+    seed: int | np.random.Generator | None = 0, *, name: str | None = None
+) -> SyntheticDemo:
+    """Return a randomised variant of a scripted demonstration (for tests not to be tuned).
+
+    Draws (from ``seed``) one of :data:`VARIANTS` (or ``name``), its frame count (the speed
+    of the motion), frame rate (10 to 60 frames/s), approach angle (tilt or yaw), stand-off
+    margin (1 to 4 mm), and a random rigid placement of the whole scene (the environment
+    turned about a random axis and moved: the approach direction in the environment's
+    frame changes; contacts, feature ids and the expected states do not).
+
+    Returns
+    -------
+    SyntheticDemo
+        ``meta["variant"]`` records the parameters drawn.
+    """
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    key = name or str(rng.choice(sorted(VARIANTS)))
+    if key not in VARIANTS:
+        raise ValueError(f"unknown demonstration {key!r}; expected one of {sorted(VARIANTS)}")
+    build, (lo, hi), angle_name, (alo, ahi) = VARIANTS[key]
+    params = {
+        "n_frames": int(rng.integers(lo, hi + 1)),
+        "fps": float(rng.uniform(10.0, 60.0)),
+        angle_name: float(rng.uniform(alo, ahi)),
+        "margin": float(rng.uniform(0.001, 0.004)),
+    }
+    demo: SyntheticDemo = build(**params)
+    axis = _unit_vectors(rng, 1)
+    T = np.eye(4)
+    T[:3, :3] = _rotvec_matrices(axis * rng.uniform(0.0, math.pi))[0]
+    T[:3, 3] = rng.uniform(-0.2, 0.2, size=3)
+    return placed(demo, T, meta={"variant": {"name": key, **params, "placement": T.tolist()}})
+
+
+def placed(
+    demo: SyntheticDemo, X_NE: npt.ArrayLike, *, meta: Mapping[str, Any] | None = None
+) -> SyntheticDemo:
+    """Return the demonstration with the environment placed at ``X_NE`` in a new frame N.
+
+    Every pose becomes ``X_NE @ X_EG``; the environment's vertices are moved with it
+    (``apo.geometry.transformed``), so feature ids, contact states and expected sub-skills
+    are unchanged.
+    """
+    from apo.geometry import transformed
+
+    T = np.asarray(X_NE, dtype=np.float64)
+    return replace(
+        demo,
+        environment=transformed(demo.environment, T),
+        X_EG=np.einsum("ij,njk->nik", T, demo.X_EG),
+        X_EG_true=np.einsum("ij,njk->nik", T, demo.X_EG_true),
+        meta={**demo.meta, **(meta or {})},
     )

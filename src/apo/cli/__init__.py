@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from apo.errors import ApoError
 
 # Command modules, in the order `apo --help` lists them.
-COMMANDS = ("dof", "contacts", "analyze", "demo", "track", "report", "figures", "plan")
+COMMANDS = ("dof", "contacts", "analyze", "demo", "track", "report", "figures", "plan", "replay")
 
 
 @contextmanager

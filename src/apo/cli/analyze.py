@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -75,7 +76,14 @@ def register(subparsers: Any) -> None:
         "--threshold",
         type=float,
         metavar="D",
-        help="contact distance threshold in --units (default: scale-aware)",
+        help="contact distance threshold in --units (default: scale-aware, and at least "
+        "3.5 standard deviations of the pose noise)",
+    )
+    p.add_argument(
+        "--noise",
+        metavar="S[,DEG]",
+        help="pose noise per axis: position standard deviation in --units and rotation in "
+        "degrees (one number: both; default: estimated from the poses)",
     )
     p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
     p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
@@ -83,6 +91,21 @@ def register(subparsers: Any) -> None:
 
     add_tracking_options(p)
     p.set_defaults(func=run)
+
+
+def parse_noise(text: str | None, unit: float) -> tuple[float, float] | None:
+    """Parse ``--noise S`` or ``--noise S,DEG`` into (metres, radians) per axis."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        vals = [float(v) for v in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise InputFormatError(f"--noise: expected S or S,DEG (non-negative numbers), got {text!r}")
+    pos, deg = vals[0], vals[-1]
+    return pos * unit, math.radians(deg)
 
 
 def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
@@ -188,6 +211,7 @@ def _run(
     threshold = None if args.threshold is None else args.threshold * UNITS[units]
     if threshold is not None and not threshold > 0:
         raise InputFormatError(f"--threshold must be positive, got {args.threshold}")
+    noise = parse_noise(args.noise, UNITS[units])
     progress, close = progress_bar(len(dem.X_EG), "contacts")
     try:
         rec = recognize_frames(
@@ -196,6 +220,7 @@ def _run(
             dem.times,
             dem.X_EG,
             threshold=threshold,
+            noise=noise,
             progress=progress,
             units=units,
             models=(model_ref(gp, out), model_ref(ep, out)),

@@ -16,6 +16,7 @@ from typing import Any
 from apo.errors import InputFormatError
 
 OUTPUTS = ("motion.json", "motion.csv", "motion.pose.list")
+KINDS = ("program", "trajectory", "pose list")
 
 
 def register(subparsers: Any) -> None:
@@ -53,20 +54,6 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-def check_destination(out: Path) -> None:
-    """Fail before any work if ``out`` cannot receive the outputs."""
-    if out.exists() and not out.is_dir():
-        raise InputFormatError(f"{out}: --out exists and is not a folder")
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise InputFormatError(f"{out}: cannot write there ({probe} is not a writable folder)")
-    for name in OUTPUTS:
-        if (out / name).is_dir():
-            raise InputFormatError(f"{out / name}: is a folder; cannot write {name} there")
-
-
 def _parameters(args: argparse.Namespace, units: str) -> Any:
     from dataclasses import replace
 
@@ -90,32 +77,21 @@ def _parameters(args: argparse.Namespace, units: str) -> Any:
 
 
 def write_motion(
-    program: Any, task_path: Path, out: Path, grasped: Path, environment: Path
+    program: Any, out: Path, grasped: Path, environment: Path, files: list[Path]
 ) -> dict[str, Path]:
-    """Write the three outputs atomically into ``out``; return them by kind."""
-    from apo.cli.analyze import atomic_path
+    """Write the three outputs into the temporary ``files`` (in ``OUTPUTS`` order)."""
     from apo.io.poses import write_pose_csv, write_pose_list
     from apo.motion import program_to_dict, trajectory
 
-    out.mkdir(parents=True, exist_ok=True)
     traj = trajectory(program)
-    written: dict[str, Path] = {}
-    target = out / "motion.json"
-    with atomic_path(target) as tmp:
-        tmp.write_text(json.dumps(program_to_dict(program), indent=2) + "\n", encoding="utf-8")
-    written["program"] = target
-    target = out / "motion.csv"
-    with atomic_path(target) as tmp:
-        write_pose_csv(
-            tmp, traj.times, traj.X_EG, units=program.units, extra={"primitive": traj.primitive}
-        )
-    written["trajectory"] = target
-    target = out / "motion.pose.list"
+    text = json.dumps(program_to_dict(program), indent=2) + "\n"
+    files[0].write_text(text, encoding="utf-8")
+    write_pose_csv(
+        files[1], traj.times, traj.X_EG, units=program.units, extra={"primitive": traj.primitive}
+    )
     models = tuple(_relative(p, out) for p in (grasped, environment))
-    with atomic_path(target) as tmp:
-        write_pose_list(tmp, traj.X_EG, units=program.units, models=(models[0], models[1]))
-    written["pose list"] = target
-    return written
+    write_pose_list(files[2], traj.X_EG, units=program.units, models=(models[0], models[1]))
+    return {kind: out / name for kind, name in zip(KINDS, OUTPUTS, strict=True)}
 
 
 def _relative(path: Path, base: Path) -> str:
@@ -150,14 +126,17 @@ def run(args: argparse.Namespace) -> int:
     """Run ``apo plan``; return the exit code."""
     from apo.io.taskfile import model_paths, read_task, task_ref
     from apo.motion import plan, program_to_dict
+    from apo.outputs import output_files
 
     task_path = Path(args.task)
     out = Path(args.out) if args.out else task_path.parent
-    check_destination(out)
     task = read_task(task_path)
     grasped, environment = model_paths(task, task_path)
-    program = plan(task, parameters=_parameters(args, task.units), task_ref=task_ref(task_path))
-    written = write_motion(program, task_path, out, grasped, environment)
+    pp = _parameters(args, task.units)
+    # destinations checked and locked before the work; each file renamed into place at the end
+    with output_files([out / name for name in OUTPUTS], label="--out") as files:
+        program = plan(task, parameters=pp, task_ref=task_ref(task_path))
+        written = write_motion(program, out, grasped, environment, files)
     if args.json:
         print(json.dumps(program_to_dict(program), indent=2))
         return 0

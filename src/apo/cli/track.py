@@ -21,8 +21,11 @@ import numpy.typing as npt
 from apo.errors import InputFormatError
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from apo.outputs import OutputSet
     from apo.perception.track import TrackResult
+    from apo.symmetry import Symmetry
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
@@ -98,6 +101,17 @@ def track_from_args(
     )
 
 
+def _symmetry_list(syms: Sequence[Symmetry]) -> list[dict[str, object]]:
+    """Symmetries as JSON: ``{"axis": [x, y, z], "angle_deg": a}`` (model frame), identity first."""
+    return [
+        {
+            "axis": [round(float(v), 6) for v in s.axis],
+            "angle_deg": round(float(np.degrees(s.angle)), 4),
+        }
+        for s in syms
+    ]
+
+
 def environment_json(result: TrackResult, units: str) -> dict[str, object]:
     """Return the content of ``<OUT stem>.environment.json`` (environment in the camera frame)."""
     scale = UNITS[units]
@@ -107,6 +121,12 @@ def environment_json(result: TrackResult, units: str) -> dict[str, object]:
         "X_CE": _xyzq(result.X_CE, scale),
         "confidence": round(result.environment_confidence, 4),
         "lost_frames": [int(i) for i in np.nonzero(result.lost)[0]],
+        "reinitialisations": result.reinitialisations,
+        "reinitialised_frames": [int(i) for i in np.nonzero(result.reinitialised)[0]],
+        "symmetries": {
+            "grasped": _symmetry_list(result.grasped_symmetries),
+            "environment": _symmetry_list(result.environment_symmetries),
+        },
     }
     if result.X_WC is not None:
         env["X_WC"] = _xyzq(result.X_WC, scale)
@@ -139,7 +159,10 @@ def write_tracking(
         result.times[keep],
         result.X_EG[keep],
         units=units,
-        extra={"confidence": result.confidence[keep]},
+        extra={
+            "confidence": result.confidence[keep],
+            "reinitialised": result.reinitialised[keep].astype(np.int64),
+        },
     )
     kept = int(keep.sum())
     lost = [int(i) for i in np.nonzero(result.lost)[0]]
@@ -148,8 +171,16 @@ def write_tracking(
         json.dumps(env, indent=2) + "\n", encoding="utf-8"
     )
     env_path = environment_path(shown)
+    from apo.symmetry import describe_symmetries
+
+    conf = result.confidence[keep]
     print(
-        f"{kept} of {len(result.times)} frames tracked -> {shown}; environment -> {env_path}",
+        f"{kept} of {len(result.times)} frames tracked -> {shown}; environment -> {env_path}\n"
+        f"  re-initialisations: {result.reinitialisations}; confidence median "
+        f"{np.median(conf) if kept else 0.0:.3f}, lowest {conf.min() if kept else 0.0:.3f}; "
+        f"environment {result.environment_confidence:.3f}\n"
+        f"  symmetries: grasped {describe_symmetries(list(result.grasped_symmetries))}, "
+        f"environment {describe_symmetries(list(result.environment_symmetries))}",
         file=file or sys.stdout,
     )
     if lost:

@@ -8,23 +8,14 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 from apo.errors import InputFormatError
+from apo.outputs import sha256_file
 from apo.task import ModelRef, TaskModel, task_from_dict
 
-__all__ = ["model_paths", "read_task", "sha256_file", "task_ref"]
-
-
-def sha256_file(path: str | Path) -> str:
-    """Return the hex SHA-256 of a file's content."""
-    h = hashlib.sha256()
-    with Path(path).open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+__all__ = ["model_paths", "read_task", "task_ref"]
 
 
 def read_task(path: str | Path) -> TaskModel:

@@ -13,6 +13,7 @@ SI units and the environment frame throughout; no simulator and no I/O here.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -272,6 +273,30 @@ class _Cursor:
     out: list[Primitive] = field(default_factory=list)
 
 
+def _checked_sign(
+    u: SubSkill,
+    d: FloatArray | None,
+    X_start: FloatArray,
+    X_target: FloatArray,
+    center: FloatArray,
+    pp: PlanParameters,
+) -> tuple[FloatArray | None, str]:
+    """Return the sub-skill's direction, reversed if the demonstration clearly moves against it.
+
+    The sign from the contacts is reliable in one dimension but only indicative inside a
+    larger subspace (``docs/transitions.md``); when the demonstrated motion from the
+    primitive's start to its target goes the other way by more than half the travel margin,
+    the observed sign wins and ``source`` becomes ``"poses"``.
+    """
+    if d is None:
+        return None, u.source
+    if u.space == "rotation":
+        s, limit = float(_rotvec(X_start, X_target) @ d), 0.5 * pp.angular_margin
+    else:
+        s, limit = float((center - _moved(X_start, X_target, center)) @ d), 0.5 * pp.travel_margin
+    return (-d, "poses") if s < -limit else (d, u.source)
+
+
 def _subskill_primitive(
     task: TaskModel,
     i: int,
@@ -294,6 +319,8 @@ def _subskill_primitive(
     center = X_target[:3, 3].copy() if c0 is None else c0
     if rot and u.point is not None and d is not None:
         center = u.point + ((center - u.point) @ d) * d
+    d, source = _checked_sign(u, d, X_start, X_target, center, pp)
+    dz = np.zeros(3) if d is None else d
     split = _Split()
     # contacts kept during the motion: all of the start state's, except those a release
     # breaks (a slide keeps its support until the very end, where the support ends)
@@ -329,7 +356,7 @@ def _subskill_primitive(
         direction=dz,
         point=None if not rot or u.point is None else np.asarray(u.point, dtype=float),
         subspace=np.asarray(u.subspace, dtype=float).reshape(-1, 3),
-        source=u.source,
+        source=source,
         target=Target(state=b.id, elements=b.elements, X_EG=X_target),
         stop=_travel(kind, rot, expected, pp),
         compliance=split.compliance(center),
@@ -420,22 +447,57 @@ def _approach(
     s0 = task.states[0]
     X0 = s0.X_EG
     X_goal = X0
+    via: tuple[FloatArray, ...] = ()
     if first is not None and not s0.elements:
         tr = task.transitions[first]
         b = task.state(tr.to_id)
-        c = _centroid(b.elements)
+        c = _centroid(_new(s0, b))
         ref = b.X_EG[:3, 3] if c is None else c
         X_first = _intermediate_poses(X0, b.X_EG, tr.subskills, ref)[0]
         u0 = tr.subskills[0]
         d = _unit(u0.direction) if u0.space == "translation" else None
         back = -d if d is not None else _unit(_normals(_new(s0, b)).sum(axis=0))
-        X_goal = X_first if back is None else _translate(X_first, pp.standoff * back)
-    move = X_goal[:3, 3] - X0[:3, 3]
-    dist = float(np.linalg.norm(move))
+        if back is not None:
+            X_goal = _translate(X_first, pp.standoff * back)
+            via = _lift_and_over(task, X0, X_goal, back, ref)
+        else:
+            X_goal = X_first
+    legs = [X0, *via, X_goal]
+    dist = sum(float(np.linalg.norm(b[:3, 3] - a[:3, 3])) for a, b in itertools.pairwise(legs))
     prim = _position_controlled(PrimitiveKind.APPROACH, s0, X_goal, X_goal[:3, 3].copy(), dist, pp)
-    du = _unit(move)
-    prim = replace(prim, direction=np.zeros(3) if du is None else du)
-    return prim, X_goal
+    du = _unit(X_goal[:3, 3] - legs[-2][:3, 3])
+    return replace(prim, direction=np.zeros(3) if du is None else du, via=via), X_goal
+
+
+def _lift_and_over(
+    task: TaskModel, X0: FloatArray, X_goal: FloatArray, up: FloatArray, contact: FloatArray
+) -> tuple[FloatArray, ...]:
+    """Via poses of the approach: rise along ``up``, cross over, come down to the stand-off.
+
+    ``up`` is the retreat direction from the first contact (``contact``). The crossing is
+    at the highest of two levels (along ``up``, of the object's origin): the start pose's,
+    and the stand-off's raised by (a) how far the highest contact point of the whole task
+    lies above the first contact (the environment reaches up to its contact points; the
+    object at the stand-off clears the first contact by the stand-off) and (b) the chord
+    ``2 rho sin(theta / 2)`` by which the turn ``theta`` between the start and stand-off
+    orientations can lower a point of the object at distance ``rho`` from its origin
+    (``rho``: the farthest contact point of the object from its origin, over the task).
+    The turn happens during the crossing, about the origin (:mod:`apo.motion.trajectory`).
+    """
+    points = [e.point for s in task.states for e in s.elements]
+    rise = max([0.0, *(float(up @ (p - contact)) for p in points)])
+    local = [invert_pose(s.X_EG) @ np.append(e.point, 1.0) for s in task.states for e in s.elements]
+    rho = max([0.0, *(float(np.linalg.norm(q[:3])) for q in local)])
+    theta = float(np.linalg.norm(_rotvec(X0, X_goal)))
+    rise += 2.0 * rho * np.sin(min(theta, np.pi) / 2.0)
+    level0, level_s = float(up @ X0[:3, 3]), float(up @ X_goal[:3, 3])
+    level = max(level0, level_s + rise)
+    via = []
+    if level - level0 > _EPS:
+        via.append(_translate(X0, (level - level0) * up))
+    if level - level_s > _EPS:
+        via.append(_translate(X_goal, (level - level_s) * up))
+    return tuple(via)
 
 
 def _emit_transition(task: TaskModel, i: int, cur: _Cursor, pp: PlanParameters) -> None:

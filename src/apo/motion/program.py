@@ -233,8 +233,8 @@ class Primitive:
         state change happens during this primitive (paper 3.5: "part of the next motion").
     direction : ndarray, shape (3,)
         Unit direction of motion (translation) or rotation axis (rotation, right hand),
-        environment frame. Approach: the direction from the start to the stand-off
-        position. Align: zeros (see ``alignment``). Zeros when the task does not fix it.
+        environment frame. Approach: the direction of its last leg, into the stand-off.
+        Align: zeros (see ``alignment``). Zeros when the task does not fix it.
     point : ndarray, shape (3,) or None
         Rotation: a point on the axis, metres (the sub-skill's pivot). None otherwise.
     subspace : ndarray, shape (k, 3)
@@ -249,8 +249,9 @@ class Primitive:
     alignment : Alignment or None
         ``align`` primitives only.
     via : tuple of ndarray, shape (4, 4)
-        Poses (metres) the nominal path passes through before ``target.X_EG``: the poses of
-        the states of the ``folded`` transitions, in order.
+        Poses (metres) the nominal path passes through before ``target.X_EG``: for the
+        approach, the lift-and-cross-over poses; otherwise the poses of the states of the
+        ``folded`` transitions, in order.
     """
 
     index: int

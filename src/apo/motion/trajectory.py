@@ -1,13 +1,15 @@
 """Time-parametrised pose trajectory of the grasped object along a skill program.
 
 For robots that take poses rather than primitives: the nominal path through the program's
-waypoints (the start pose, then per primitive its ``via`` poses and its target pose), each
-segment a screw motion (the geodesic of SE(3): ``X(s) = exp(s xi) X_a`` with
-``xi = log(X_b inv(X_a))``, a twist in the environment frame, so that a turn about a pivot
-keeps the pivot still), timed by a minimum-jerk profile ``s(u) = 10u^3 - 15u^4 + 6u^5``
-(zero velocity and acceleration at every waypoint, where guarded moves start and stop).
-A segment lasts ``max(distance / speed, angle / angular_speed)`` with the distance that
-of the primitive's compliance centre, and at least one sample period.
+waypoints (the start pose, then per primitive its ``via`` poses and its target pose). In a
+segment the point of the object at the primitive's compliance centre moves on a straight
+line while the orientation turns on the geodesic (:class:`scipy.spatial.transform.Slerp`)
+about that point; the centre of a rotational sub-skill lies on its axis, so such a segment
+is the turn about the pivot the sub-skill prescribes, and the approach turns about the
+object's origin while it crosses over at a safe level. Timing: a minimum-jerk profile
+``s(u) = 10u^3 - 15u^4 + 6u^5`` (zero velocity and acceleration at every waypoint, where
+guarded moves start and stop); a segment lasts ``max(distance / speed, angle /
+angular_speed)`` with the distance that of the centre, and at least one sample period.
 
 SI units, environment frame; no I/O (``apo plan`` writes ``motion.csv`` and
 ``motion.pose.list`` with :mod:`apo.io.poses`).
@@ -19,15 +21,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from apo.motion.program import SkillProgram
-from apo.spatial import invert_pose, pose_from_twist, skew
+from apo.spatial import invert_pose
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-__all__ = ["Trajectory", "min_jerk", "trajectory", "twist_from_pose"]
+__all__ = ["Trajectory", "min_jerk", "trajectory"]
 
 
 @dataclass(frozen=True)
@@ -47,32 +49,6 @@ class Trajectory:
     times: FloatArray
     X_EG: FloatArray
     primitive: IntArray
-
-
-def twist_from_pose(X: npt.ArrayLike) -> FloatArray:
-    """Return the twist ``[omega; v]`` whose exponential is ``X`` (inverse of ``pose_from_twist``).
-
-    The rotation angle is taken in ``[0, pi]``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from apo.spatial import pose_from_twist
-    >>> xi = np.array([0.1, -0.2, 0.3, 0.01, 0.02, -0.03])
-    >>> bool(np.allclose(twist_from_pose(pose_from_twist(xi)), xi))
-    True
-    """
-    M = np.asarray(X, dtype=float)
-    w = np.asarray(Rotation.from_matrix(M[:3, :3]).as_rotvec(), dtype=float)
-    th = float(np.linalg.norm(w))
-    W = skew(w)
-    if th < 1e-12:
-        V = np.eye(3) + 0.5 * W
-    else:
-        B = (1 - np.cos(th)) / th**2
-        C = (1 - np.sin(th) / th) / th**2
-        V = np.eye(3) + B * W + C * (W @ W)
-    return np.concatenate([w, np.linalg.solve(V, M[:3, 3])])
 
 
 def min_jerk(u: npt.ArrayLike) -> FloatArray:
@@ -114,10 +90,10 @@ def trajectory(program: SkillProgram) -> Trajectory:
     pp = program.parameters
     X_prev = program.start_X_EG
     t0 = 0.0
-    segments: list[tuple[float, float, FloatArray, FloatArray, int]] = []
+    segments: list[tuple[float, float, FloatArray, FloatArray, int, FloatArray]] = []
     for X, idx, center in _waypoints(program):
         dt = _duration(X_prev, X, center, program)
-        segments.append((t0, t0 + dt, X_prev, X, idx))
+        segments.append((t0, t0 + dt, X_prev, X, idx, center))
         t0 += dt
         X_prev = X
     total = t0
@@ -129,11 +105,21 @@ def trajectory(program: SkillProgram) -> Trajectory:
     prim = np.zeros(times.shape[0], dtype=np.int64)
     poses[0], prim[0] = program.start_X_EG, segments[0][4]
     k = 1
-    for ta, tb, Xa, Xb, idx in segments:
-        xi = twist_from_pose(Xb @ invert_pose(Xa))
-        while k < times.shape[0] and times[k] <= tb + 1e-12:
-            s = float(min_jerk((times[k] - ta) / (tb - ta)))
-            poses[k] = pose_from_twist(s * xi) @ Xa
-            prim[k] = idx
-            k += 1
+    for ta, tb, Xa, Xb, idx, center in segments:
+        c_G = invert_pose(Xb) @ np.append(center, 1.0)
+        c_a = (Xa @ c_G)[:3]
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([Xa[:3, :3], Xb[:3, :3]])))
+        k1 = k
+        while k1 < times.shape[0] and times[k1] <= tb + 1e-12:
+            k1 += 1
+        if k1 == k:
+            continue
+        s = np.clip(min_jerk((times[k:k1] - ta) / (tb - ta)), 0.0, 1.0)
+        R = slerp(s).as_matrix()
+        c = c_a + s[:, None] * (center - c_a)
+        poses[k:k1, :3, :3] = R
+        poses[k:k1, :3, 3] = c - np.einsum("nij,j->ni", R, c_G[:3])
+        poses[k:k1, 3, 3] = 1.0
+        prim[k:k1] = idx
+        k = k1
     return Trajectory(times=np.asarray(times, dtype=np.float64), X_EG=poses, primitive=prim)

@@ -20,7 +20,6 @@ OpenCV is optional (``pip install apo[perception]``); it is imported when depth 
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -29,14 +28,8 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import ApoError, InputFormatError
-from apo.perception.frames import (
-    DEFAULT_FPS,
-    Camera,
-    _check_numbering,
-    _frame_indices,
-    _read_times,
-    camera_from_json,
-)
+from apo.perception.camera import DEFAULT_FPS, Camera, camera_from_json, read_calibration
+from apo.perception.layout import check_numbering, frame_indices, read_times
 
 __all__ = ["StereoFrames", "depth_from_disparity", "disparity_sgbm", "open_stereo"]
 
@@ -219,12 +212,7 @@ def open_stereo(path: str | Path, *, fps: float = DEFAULT_FPS) -> StereoFrames:
     """
     root = Path(path)
     cal_path = root / "stereo.json"
-    if not cal_path.is_file():
-        raise InputFormatError(f"{cal_path}: stereo calibration file not found")
-    try:
-        data = json.loads(cal_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputFormatError(f"{cal_path}: not valid JSON: {exc}") from None
+    data = read_calibration(cal_path, "stereo")
     if not isinstance(data, dict):
         raise InputFormatError(f"{cal_path}: expected a JSON object")
     extra = {k: data.pop(k) for k in ("baseline", "num_disparities", "block_size") if k in data}
@@ -240,16 +228,16 @@ def open_stereo(path: str | Path, *, fps: float = DEFAULT_FPS) -> StereoFrames:
         raise InputFormatError(f"{cal_path}: num_disparities must be a multiple of 16, got {nd!r}")
     if not isinstance(bs, int) or bs < 1 or bs % 2 == 0:
         raise InputFormatError(f"{cal_path}: block_size must be a positive odd integer, got {bs!r}")
-    left = _frame_indices(root / "left")
-    right = _frame_indices(root / "right")
-    _check_numbering(root, "left", left)
-    _check_numbering(root, "right", right)
+    left = frame_indices(root / "left")
+    right = frame_indices(root / "right")
+    check_numbering(root, "left", left)
+    check_numbering(root, "right", right)
     if len(left) != len(right):
         raise InputFormatError(
             f"{root}: left/ has {len(left)} frames, right/ has {len(right)}; they must pair"
         )
     ts = root / "timestamps.txt"
-    times = _read_times(ts, len(left)) if ts.exists() else np.arange(len(left)) / fps
+    times = read_times(ts, len(left)) if ts.exists() else np.arange(len(left)) / fps
     return StereoFrames(
         root,
         camera,

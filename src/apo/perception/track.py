@@ -55,6 +55,7 @@ from apo.perception.segment import (
     static_mask,
 )
 from apo.spatial import invert_pose, transform_points
+from apo.symmetry import Symmetry, nearest_twin, symmetries
 
 __all__ = ["TrackOptions", "TrackResult", "track_frames"]
 
@@ -147,6 +148,12 @@ class TrackResult:
         Confidence of ``X_CE``.
     X_WC : ndarray, shape (4, 4), or None
         The camera in the world frame, from ``camera.json``.
+    reinitialised : ndarray of bool, shape (N,)
+        Frames where the global search ran because tracking from the previous pose failed
+        (not the first frame's own initialisation when no initial pose was given).
+    grasped_symmetries, environment_symmetries : tuple of Symmetry
+        The models' rigid symmetries (:func:`apo.symmetry.symmetries`; the identity first).
+        Every pose is the twin nearest the previous frame's (see :func:`track_frames`).
     """
 
     times: FloatArray
@@ -157,6 +164,32 @@ class TrackResult:
     lost: BoolArray
     environment_confidence: float
     X_WC: FloatArray | None = None
+    reinitialised: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    grasped_symmetries: tuple[Symmetry, ...] = ()
+    environment_symmetries: tuple[Symmetry, ...] = ()
+
+    @property
+    def reinitialisations(self) -> int:
+        """Number of frames where tracking was re-initialised by the global search."""
+        return int(np.count_nonzero(self.reinitialised))
+
+
+def _twin(
+    X: FloatArray, ref: FloatArray | None, syms: tuple[Symmetry, ...], model: ModelCloud
+) -> FloatArray:
+    """Return the symmetric twin of ``X`` nearest ``ref``; without ``ref``, the canonical twin.
+
+    The canonical twin (first frame without an initial pose) is the one whose axes are
+    nearest the camera's (smallest rotation angle from the camera frame, at the pose's own
+    position); ties go to the lowest symmetry index. Distances weigh a rotation by the
+    model's half-diameter (the displacement of its far points).
+    """
+    if len(syms) <= 1:
+        return X
+    if ref is None:
+        ref = np.eye(4)
+        ref[:3, 3] = X[:3, 3]
+    return nearest_twin(X, ref, list(syms), length=model.diameter / 2)[0]
 
 
 def _displacement(model: ModelCloud, X_a: FloatArray, X_b: FloatArray) -> float:
@@ -355,12 +388,20 @@ def track_frames(
     else:
         env = initialise(env_pts, E, depth=median_depth, camera=cam, seed=opt.seed, **kw)
     if env.confidence < opt.min_confidence:
+        hint = (
+            "; give its pose in the camera frame with --init-environment "
+            "(library: init_environment)"
+            if XE0 is None
+            else "; check --init-environment"
+        )
         raise TrackingLostError(
             f"environment object not found: best pose has confidence {env.confidence:.2f} "
             f"(fitness {env.fitness:.2f}, free-space violation {env.violation:.2f}) "
-            f"< {opt.min_confidence}"
+            f"< {opt.min_confidence}{hint}"
         )
-    X_CE = env.X_CM
+    syms_G = tuple(symmetries(G.vertices, G.triangles))
+    syms_E = tuple(symmetries(E.vertices, E.triangles))
+    X_CE = _twin(env.X_CM, XE0, syms_E, E)
     env_depth, _ = rasterize(transform_points(X_CE, E.vertices), E.triangles, cam)
     obstacle = (E, X_CE)
 
@@ -368,6 +409,7 @@ def track_frames(
     X_CG = np.full((n, 4, 4), np.nan)
     conf = np.zeros(n)
     lost = np.ones(n, dtype=bool)
+    reinit = np.zeros(n, dtype=bool)
     history: list[FloatArray] = []  # last tracked poses (for the prediction)
     rmses: list[float] = []  # RMS residuals of the last tracked frames
     gap = 0
@@ -453,21 +495,27 @@ def track_frames(
                         r = register(pts, G, pred, depth=d, camera=c, obstacle=obstacle, **kw)
                         if better(r, result):
                             result = r
+            fresh = False  # the result comes from the global search
             if result is None or result.confidence < opt.min_confidence:
                 # (Re-)initialise from the whole frame.
+                reinit[i] = i > 0 or XG0 is not None
                 pts, d, c = grasped_points(rgb, depth, None)
                 if len(pts) >= opt.min_points:
                     again = initialise(
                         pts, G, depth=d, camera=c, seed=opt.seed, obstacle=obstacle, **kw
                     )
                     if result is None or again.confidence > result.confidence:
-                        result = again
+                        result, fresh = again, True
             if result is not None:
                 conf[i] = result.confidence
             if result is not None and result.confidence >= opt.min_confidence:
-                X_CG[i] = result.X_CM
+                # The twin nearest the last tracked pose (the given one at the first frame).
+                ref = history[-1] if history else XG0
+                X = _twin(result.X_CM, ref, syms_G, G)
+                X_CG[i] = X
                 lost[i] = False
-                history = [*history[-1:], result.X_CM]
+                # A velocity never spans a re-initialisation: start the history afresh.
+                history = [X] if fresh else [*history[-1:], X]
                 rmses = [*rmses[-9:], result.rmse]
                 gap = 0
             else:
@@ -489,4 +537,7 @@ def track_frames(
         lost,
         env.confidence,
         cam.X_WC,
+        reinit,
+        syms_G,
+        syms_E,
     )

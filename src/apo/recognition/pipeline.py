@@ -16,14 +16,17 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from apo.contact import ContactFinder
+from apo.errors import InputFormatError
 from apo.geometry import Polyhedron
 from apo.recognition.analysis import Analysis, analyse_needed
 from apo.recognition.build import build_states, build_transitions, rejected_runs
@@ -34,6 +37,13 @@ from apo.recognition.costs import candidate_costs, emission_costs
 from apo.recognition.decoding import constrained_path, viterbi_uniform
 from apo.recognition.distances import DistanceCache
 from apo.recognition.inputs import check_scale, check_sequence, default_threshold
+from apo.recognition.noise import (
+    NOISE_THRESHOLD_FACTOR,
+    NoiseEstimate,
+    distance_sigma,
+    estimate_noise,
+    outlier_frames,
+)
 from apo.recognition.types import (
     FloatArray,
     IntArray,
@@ -42,7 +52,7 @@ from apo.recognition.types import (
     Scene,
     SegmentationCosts,
 )
-from apo.task import ModelRef, TaskModel
+from apo.task import UNITS, ModelRef, TaskModel
 
 __all__ = ["recognize", "recognize_frames"]
 
@@ -62,6 +72,7 @@ def recognize(
     source: str = "",
     costs: SegmentationCosts | None = None,
     memoize: bool = False,
+    noise: tuple[float, float] | None = None,
 ) -> TaskModel:
     """Recognise a demonstration into a :class:`~apo.task.TaskModel`.
 
@@ -74,7 +85,9 @@ def recognize(
     X_EG_seq : array_like, shape (N, 4, 4)
         Observed poses of G in E, metres.
     threshold : float, optional
-        Contact distance threshold, metres; default :func:`default_threshold` (scale-aware).
+        Contact distance threshold, metres; default: the larger of
+        :func:`default_threshold` (scale-aware) and ``NOISE_THRESHOLD_FACTOR`` standard
+        deviations of a vertex distance under the pose noise.
     progress : callable, optional
         Called as ``progress(done, total)`` while contacts are found.
     units : str
@@ -89,6 +102,10 @@ def recognize(
         Run the contact finder once per set of near feature pairs (:func:`near_signatures`)
         instead of at every frame. Off by default: the finder's batched search over all
         frames (:meth:`apo.contact.ContactFinder.find_batch`) is now the faster of the two.
+
+    noise : (float, float), optional
+        Pose noise per axis: position (metres) and rotation (radians) standard deviations;
+        default: estimated from the poses (:func:`apo.recognition.noise.estimate_noise`).
 
     Returns
     -------
@@ -115,6 +132,7 @@ def recognize(
         source=source,
         costs=costs,
         memoize=memoize,
+        noise=noise,
     ).task
 
 
@@ -131,6 +149,7 @@ def recognize_frames(
     source: str = "",
     costs: SegmentationCosts | None = None,
     memoize: bool = False,
+    noise: tuple[float, float] | None = None,
 ) -> Recognition:
     """Recognise a demonstration; return the task model and per-frame diagnostics.
 
@@ -145,7 +164,8 @@ def recognize_frames(
     name = source or "demonstration"
     t, X = check_sequence(times, X_EG_seq, source=name)  # type: ignore[arg-type]
     check_scale(grasped, environment, X, name)
-    scene = make_scene(grasped, environment, X, threshold, costs or SegmentationCosts())
+    est = pose_noise(grasped, X, noise)
+    scene = make_scene(grasped, environment, X, threshold, costs or SegmentationCosts(), est)
     observed = observe(scene, memoize=memoize, progress=progress)
     tm["contacts"] = time.perf_counter() - t0
     dists = DistanceCache(grasped, environment, X, scene.theta)
@@ -160,7 +180,8 @@ def recognize_frames(
         observed.labels,
         scene.costs,
     )
-    path0 = _timed(tm, "segmentation", viterbi_uniform, emission0, scene.costs.switch)
+    masked = np.where(scene.outliers[:, None], 0.0, emission0)
+    path0 = _timed(tm, "segmentation", viterbi_uniform, masked, scene.costs.switch)
     an = _timed(tm, "analysis", analyse_needed, scene, observed, emission0, path0)
     path, obs_c, emission = _timed(tm, "segmentation", segment, scene, an, dists, observed)
     chosen = an.states(observed)
@@ -173,7 +194,32 @@ def recognize_frames(
     )
     tm["task"] = time.perf_counter() - t4
     tm["total"] = time.perf_counter() - t0
-    return _result(task, observed, an, path, obs_c, corrected, t, emission, X, tm)
+    task = replace(task, extra={**task.extra, "noise": noise_record(est, units)})
+    rec = _result(task, observed, an, path, obs_c, corrected, t, emission, X, tm)
+    return replace(rec, noise=est, outliers=scene.outliers)
+
+
+def pose_noise(
+    grasped: Polyhedron, X: FloatArray, noise: tuple[float, float] | None
+) -> NoiseEstimate:
+    """Return the pose noise: given ``(position m, rotation rad)`` per axis, else estimated."""
+    if noise is None:
+        return estimate_noise(grasped, X)
+    sp, sr = (float(v) for v in noise)
+    if not (math.isfinite(sp) and math.isfinite(sr) and sp >= 0 and sr >= 0):
+        raise InputFormatError(f"noise must be two non-negative numbers, got {noise}")
+    return NoiseEstimate(sp, sr, distance_sigma(grasped, sp, sr), "given")
+
+
+def noise_record(noise: NoiseEstimate, units: str) -> dict[str, object]:
+    """Return the noise as written in ``task.json``'s ``extra.noise`` (lengths in ``units``)."""
+    k = 1.0 / UNITS.get(units, 1.0)
+    return {
+        "position": round(noise.position * k, 6),
+        "rotation_deg": round(math.degrees(noise.rotation), 6),
+        "distance": round(noise.distance * k, 6),
+        "source": noise.source,
+    }
 
 
 def _timed(tm: dict[str, float], stage: str, f: Callable[..., T], *args: object) -> T:
@@ -190,17 +236,28 @@ def make_scene(
     X: FloatArray,
     threshold: float | None,
     costs: SegmentationCosts,
+    noise: NoiseEstimate | None = None,
 ) -> Scene:
     """Make the scene of a recognition: models, poses, the two contact finders, the costs.
 
-    At corrected poses contacts hold exactly: the contact finder's own (tight) default
+    The threshold, when not given, is the larger of :func:`default_threshold` and
+    ``NOISE_THRESHOLD_FACTOR`` standard deviations of a vertex distance under ``noise``.
+    Outlier frames (:func:`~apo.recognition.noise.outlier_frames`) are marked. At
+    corrected poses contacts hold exactly: the contact finder's own (tight) default
     threshold tells which feature pairs really touch there.
     """
+    base = default_threshold(grasped, environment)
     if threshold is None:
-        threshold = default_threshold(grasped, environment)
+        sd = 0.0 if noise is None else noise.distance
+        threshold = max(base, NOISE_THRESHOLD_FACTOR * sd)
     finder = ContactFinder(grasped, environment, threshold=threshold)
     exact = ContactFinder(grasped, environment)
-    return Scene(grasped, environment, X, finder, exact, costs)
+    out = (
+        np.zeros(len(X), dtype=bool)
+        if noise is None
+        else outlier_frames(grasped, X, noise, floor=base)
+    )
+    return Scene(grasped, environment, X, finder, exact, costs, out)
 
 
 def segment(
@@ -217,6 +274,7 @@ def segment(
     emission = candidate_costs(
         dists, an.keys, states, an.candidates, an.bridges, observed.labels, w
     )
+    emission = np.where(scene.outliers[:, None] & np.isfinite(emission), 0.0, emission)
     path = constrained_path(emission, an.feasible, w.switch, w.jump)
     canon = canonical_ids(an.candidates)
     return canon[path], canon[observed.labels], emission

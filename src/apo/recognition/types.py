@@ -16,6 +16,7 @@ import numpy.typing as npt
 if TYPE_CHECKING:
     from apo.contact import ContactFinder, ContactState
     from apo.geometry import Polyhedron
+    from apo.recognition.noise import NoiseEstimate
     from apo.task import TaskModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -88,6 +89,9 @@ class Scene:
         Contact finder at its own tight default threshold: which pairs really touch at a
         corrected pose.
     costs : SegmentationCosts
+    outliers : ndarray of bool, shape (N,)
+        Frames whose pose is an outlier (``apo.recognition.noise``): ignored by the
+        segmentation (every state explains them equally).
     """
 
     grasped: Polyhedron
@@ -96,6 +100,11 @@ class Scene:
     finder: ContactFinder
     exact: ContactFinder
     costs: SegmentationCosts
+    outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def __post_init__(self) -> None:
+        if len(self.outliers) != len(self.X):
+            object.__setattr__(self, "outliers", np.zeros(len(self.X), dtype=bool))
 
     @property
     def theta(self) -> float:
@@ -175,6 +184,10 @@ class Recognition:
     X_corrected : ndarray, shape (N, 4, 4)
         Each frame's pose corrected under its chosen state (metres); the observed pose
         where the correction did not converge.
+    noise : NoiseEstimate or None
+        The pose noise used (estimated from the poses, or given).
+    outliers : ndarray of bool, shape (N,)
+        Frames taken as outliers (ignored by the segmentation).
     """
 
     task: TaskModel
@@ -193,6 +206,8 @@ class Recognition:
     timings: dict[str, float] = field(default_factory=dict)
     X_observed: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     X_corrected: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    noise: NoiseEstimate | None = None
+    outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
     def flags(self) -> list[list[str]]:

@@ -1,0 +1,152 @@
+"""The pose noise of a demonstration, estimated from the poses themselves.
+
+Observed poses are a smooth motion plus noise. The second difference of a smooth motion
+sampled densely is small, while that of white noise of standard deviation ``s`` has
+standard deviation ``sqrt(6) s``; a robust scale (the median absolute deviation) of the
+second differences of G's centroid and of its rotation therefore estimates the noise,
+ignoring the few frames where the motion itself changes fast. The estimate sets the
+contact threshold (a contact whose distance is blurred by the noise must still be seen) and
+marks outlier frames (a pose far from what its neighbours predict).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from apo.geometry import Polyhedron
+from apo.recognition.types import BoolArray, FloatArray
+
+__all__ = [
+    "NOISE_THRESHOLD_FACTOR",
+    "OUTLIER_FACTOR",
+    "NoiseEstimate",
+    "distance_sigma",
+    "estimate_noise",
+    "outlier_frames",
+]
+
+#: The contact threshold is at least this many standard deviations of a vertex distance.
+NOISE_THRESHOLD_FACTOR = 3.5
+#: A frame whose pose is this many noise deviations from the prediction of its two
+#: neighbours (and from each of them) is an outlier.
+OUTLIER_FACTOR = 5.0
+#: Median absolute deviation to standard deviation, for Gaussian data.
+_MAD = 1.4826
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Pose noise per axis, and what it means for a contact distance.
+
+    Attributes
+    ----------
+    position : float
+        Standard deviation of the position of G's vertex centroid, per axis (metres).
+    rotation : float
+        Standard deviation of the rotation, per axis (radians).
+    distance : float
+        Standard deviation of the distance of a vertex of G from a plane (metres):
+        ``sqrt(position^2 + (radius * rotation)^2)``, ``radius`` G's RMS vertex radius.
+    source : str
+        ``"data"`` (estimated) or ``"given"`` (``--noise``).
+    """
+
+    position: float
+    rotation: float
+    distance: float
+    source: str = "data"
+
+
+def _rotvecs(R: FloatArray) -> FloatArray:
+    """Rotation vectors (n, 3) of rotation matrices (n, 3, 3) (small angles exact enough)."""
+    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(c)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    s = np.sin(th)
+    k = np.where(s > 1e-12, th / np.where(s > 1e-12, 2.0 * s, 1.0), 0.5)
+    out: FloatArray = w * k[:, None]
+    return out
+
+
+def _second_differences(grasped: Polyhedron, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Second differences (n-2, 3) of G's centroid and of its rotation vector increments."""
+    cg = grasped.vertices.mean(axis=0)
+    c = np.einsum("nij,j->ni", X[:, :3, :3], cg) + X[:, :3, 3]
+    dc = c[2:] - 2.0 * c[1:-1] + c[:-2]
+    R = X[:, :3, :3]
+    inc = _rotvecs(np.einsum("nij,nkj->nik", R[1:], R[:-1]))  # R_{t+1} R_t^T
+    return dc, inc[1:] - inc[:-1]
+
+
+def _robust_sigma(d: FloatArray) -> float:
+    """Return the standard deviation per axis of white noise whose second differences are ``d``."""
+    if len(d) == 0:
+        return 0.0
+    return float(_MAD * np.median(np.abs(d - np.median(d, axis=0))) / math.sqrt(6.0))
+
+
+def estimate_noise(grasped: Polyhedron, X_EG: FloatArray) -> NoiseEstimate:
+    """Estimate the pose noise of a sequence of poses of G (metres, radians).
+
+    Fewer than 5 frames give zero noise (nothing to estimate from).
+    """
+    X = np.asarray(X_EG, dtype=np.float64)
+    if len(X) < 5:
+        return NoiseEstimate(0.0, 0.0, 0.0)
+    dc, dr = _second_differences(grasped, X)
+    sp, sr = _robust_sigma(dc), _robust_sigma(dr)
+    return NoiseEstimate(sp, sr, distance_sigma(grasped, sp, sr))
+
+
+def distance_sigma(grasped: Polyhedron, position: float, rotation: float) -> float:
+    """Return the standard deviation (metres) of a vertex-plane distance under pose noise."""
+    v = grasped.vertices - grasped.vertices.mean(axis=0)
+    radius = float(np.sqrt((v**2).sum(axis=1).mean()))
+    return math.hypot(position, radius * rotation)
+
+
+def outlier_frames(
+    grasped: Polyhedron, X_EG: FloatArray, noise: NoiseEstimate, *, floor: float = 0.0
+) -> BoolArray:
+    """Frames whose pose is far from both neighbours and from their midpoint, shape (N,).
+
+    The corners of G's bounding box are compared: at frame ``t`` some corner must be more
+    than ``OUTLIER_FACTOR`` deviations of the difference of two noisy corner positions
+    (``sqrt(2) hypot(position, r rotation)``, ``r`` the corners' largest radius) from its
+    position at ``t - 1``,
+    at ``t + 1`` and from their mean (and at least ``floor`` metres), while those two agree
+    with each other better than with it. First and last frames are never outliers.
+    """
+    X = np.asarray(X_EG, dtype=np.float64)
+    n = len(X)
+    out = np.zeros(n, dtype=bool)
+    if n < 3 or max(noise.distance, floor) <= 0:
+        return out
+    lo, hi = grasped.vertices.min(axis=0), grasped.vertices.max(axis=0)
+    corners = np.array([[(lo, hi)[(i >> k) & 1][k] for k in range(3)] for i in range(8)])
+    r_c = float(np.linalg.norm(corners - grasped.vertices.mean(axis=0), axis=1).max())
+    sigma_c = math.hypot(noise.position, r_c * noise.rotation)  # a corner, per axis
+    lim = max(OUTLIER_FACTOR * math.sqrt(2.0) * sigma_c, floor)
+
+    def apart(a: slice, b: slice, mid: bool = False) -> FloatArray:
+        """Largest corner distance between the poses X[a] and X[b] (or their midpoint)."""
+        pa = np.einsum("nij,cj->nci", X[a, :3, :3], corners) + X[a, None, :3, 3]
+        if mid:
+            pc = np.einsum("nij,cj->nci", X[2:, :3, :3], corners) + X[2:, None, :3, 3]
+            pb = 0.5 * (
+                np.einsum("nij,cj->nci", X[:-2, :3, :3], corners) + X[:-2, None, :3, 3] + pc
+            )
+        else:
+            pb = np.einsum("nij,cj->nci", X[b, :3, :3], corners) + X[b, None, :3, 3]
+        d: FloatArray = np.linalg.norm(pa - pb, axis=2).max(axis=1)
+        return d
+
+    inner = slice(1, -1)
+    mid_d = apart(inner, inner, mid=True)
+    prev_d, next_d = apart(inner, slice(None, -2)), apart(inner, slice(2, None))
+    across = apart(slice(2, None), slice(None, -2))
+    out[1:-1] = (prev_d > lim) & (next_d > lim) & (mid_d > lim) & (across < mid_d)
+    return out

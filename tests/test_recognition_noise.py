@@ -1,0 +1,115 @@
+"""Noise-aware recognition: noise estimated from the poses, outlier frames, variants."""
+
+import math
+
+import numpy as np
+import pytest
+
+from apo import synthetic
+from apo.recognition import recognize_frames
+from apo.recognition.inputs import default_threshold
+from apo.recognition.noise import (
+    NOISE_THRESHOLD_FACTOR,
+    distance_sigma,
+    estimate_noise,
+    outlier_frames,
+)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.0, 2.0])
+def test_noise_is_estimated_from_the_poses(sigma):
+    for seed in range(3):
+        demo = synthetic.random_variant(seed)
+        noisy = synthetic.add_noise(demo, sigma_mm=sigma, sigma_deg=sigma, seed=seed)
+        est = estimate_noise(demo.grasped, noisy.X_EG)
+        assert est.position == pytest.approx(sigma * 1e-3, rel=0.35)
+        assert est.rotation == pytest.approx(math.radians(sigma), rel=0.35)
+
+
+def test_exact_poses_have_no_noise_and_no_outliers():
+    demo = synthetic.peg_in_hole_2d()
+    est = estimate_noise(demo.grasped, demo.X_EG)
+    assert est.position < 1e-9 and est.rotation < 1e-9
+    assert not outlier_frames(demo.grasped, demo.X_EG, est, floor=0.004).any()
+
+
+def test_large_outlier_frames_are_found():
+    demo = synthetic.square_peg_in_hole()
+    noisy = synthetic.add_noise(
+        demo, sigma_mm=1, sigma_deg=1, seed=3, outlier_rate=0.05, outlier_mm=40, outlier_deg=20
+    )
+    est = estimate_noise(demo.grasped, noisy.X_EG)
+    found = outlier_frames(demo.grasped, noisy.X_EG, est, floor=0.004)
+    truth = noisy.outliers.copy()
+    truth[[0, -1]] = False  # the first and last frames are never called outliers
+    assert truth.any() and not (found & ~truth).any()
+    assert found[truth].mean() >= 0.7
+
+
+def test_threshold_follows_the_noise_and_the_noise_can_be_given():
+    demo = synthetic.block_tipping()
+    noisy = synthetic.add_noise(demo, sigma_mm=2, sigma_deg=2, seed=0)
+    G, E = demo.grasped, demo.environment
+    rec = recognize_frames(G, E, noisy.times, noisy.X_EG)
+    assert rec.noise is not None and rec.noise.source == "data"
+    want = max(default_threshold(G, E), NOISE_THRESHOLD_FACTOR * rec.noise.distance)
+    assert rec.task.threshold == pytest.approx(want)
+    assert rec.task.extra["noise"]["source"] == "data"
+    given = recognize_frames(G, E, noisy.times, noisy.X_EG, noise=(0.0, 0.0))
+    assert given.noise is not None and given.noise.source == "given"
+    assert given.task.threshold == pytest.approx(default_threshold(G, E))
+    sd = distance_sigma(G, 0.004, math.radians(4))
+    big = recognize_frames(G, E, noisy.times, noisy.X_EG, noise=(0.004, math.radians(4)))
+    assert big.task.threshold == pytest.approx(NOISE_THRESHOLD_FACTOR * sd)
+
+
+def test_random_variants_differ_and_are_reproducible():
+    a, b = synthetic.random_variant(1), synthetic.random_variant(1)
+    assert a.meta["variant"] == b.meta["variant"]
+    np.testing.assert_array_equal(a.X_EG, b.X_EG)
+    names = {synthetic.random_variant(s).meta["variant"]["name"] for s in range(12)}
+    assert len(names) >= 3
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_variants_are_recognised_exactly_without_noise(seed):
+    demo = synthetic.random_variant(seed)
+    rec = recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG)
+    want = [demo.true_states[int(demo.labels[a])].fig25 for _s, a, _b in demo.segments()]
+    assert [tuple(s.fig25) for s in rec.task.states] == [tuple(w) for w in want]
+    truth = [k for et in demo.expected_subskills for k in et.subskills]
+    assert rec.task.subskill_sequence() == truth
+    assert [t.critical for t in rec.task.transitions] == [
+        et.critical for et in demo.expected_subskills
+    ]
+
+
+def test_drift_is_slow_and_of_the_size_asked():
+    demo = synthetic.peg_in_hole_2d(n_frames=400, fps=30.0)
+    noisy = synthetic.add_noise(demo, sigma_mm=0, sigma_deg=0, drift_mm=2.0, seed=0)
+    cg = demo.grasped.vertices.mean(axis=0)
+    c = np.einsum("nij,j->ni", noisy.X_EG[:, :3, :3], cg) + noisy.X_EG[:, :3, 3]
+    c0 = np.einsum("nij,j->ni", demo.X_EG[:, :3, :3], cg) + demo.X_EG[:, :3, 3]
+    d = (c - c0) * 1e3
+    assert 0.8 < d.std() < 3.0
+    lag1 = np.corrcoef(d[1:, 0], d[:-1, 0])[0, 1]
+    assert lag1 > 0.9
+    with pytest.raises(ValueError, match="drift_mm"):
+        synthetic.add_noise(demo, sigma_mm=0, sigma_deg=0, drift_mm=-1)
+
+
+def test_cli_noise_option(real_data_dir, tmp_path, capsys):
+    import json
+
+    from apo.cli import main
+
+    demo = str(real_data_dir / "peg_in_hole.pose.list")
+    out = tmp_path / "out"
+    args = ["analyze", demo, "--out", str(out), "--no-plot", "--no-report"]
+    assert main([*args, "--noise", "0.5,0.25"]) == 0
+    noise = json.loads((out / "task.json").read_text())["extra"]["noise"]
+    assert noise["position"] == 0.5 and noise["rotation_deg"] == 0.25
+    assert noise["source"] == "given"
+    capsys.readouterr()
+    assert main([*args, "--noise", "-1"]) == 2
+    assert "--noise" in capsys.readouterr().err
