@@ -279,7 +279,7 @@ def test_validation() -> None:
     elements = find_contacts(CUBE, TABLE, pose()).elements
     with pytest.raises(ValueError, match=r"shape \(4, 4\)"):
         correct_pose(CUBE, TABLE, np.eye(3), elements)
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match="not finite"):
         correct_poses(CUBE, TABLE, np.full((2, 4, 4), np.nan), [elements, elements])
     with pytest.raises(ValueError, match="not a rotation"):
         correct_pose(CUBE, TABLE, np.diag([1.0, 1.0, 2.0, 1.0]), elements)

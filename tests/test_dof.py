@@ -1,4 +1,4 @@
-"""DOF analysis: hand-derived canonical states and property tests (THEORY.md, paper 2.2/3.5).
+"""DOF analysis: hand-derived canonical states and property tests (docs/theory.md, paper 2.2/3.5).
 
 Conventions: contact constraint ``(P x F) . S0 + F . S1 >= 0``; F points from the environment
 to the grasped object. Unit block [0,1]^3 unless said otherwise.

@@ -525,8 +525,10 @@ def test_direction_from_poses_when_nothing_else_tells():
 
 
 def test_bad_pose_is_rejected():
-    with pytest.raises(InputFormatError, match="4x4"):
+    with pytest.raises(InputFormatError, match=r"X_EG_before must have shape \(4, 4\)"):
         analyze_transition(PAPER["A"], PAPER["B"], X_EG_before=np.eye(3))
+    with pytest.raises(InputFormatError, match="X_EG_after rotation part is not a rotation"):
+        analyze_transition(PAPER["A"], PAPER["B"], X_EG_after=np.diag([1.0, 1.0, 2.0, 1.0]))
 
 
 def _moved(st: ContactState, R: np.ndarray, t: np.ndarray) -> ContactState:

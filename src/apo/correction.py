@@ -25,12 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import tol
 from apo.contact import ContactElement, ContactKind
 from apo.geometry import Polyhedron
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from apo.spatial import check_poses
+from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "DEFAULT_MAX_ITER",
@@ -49,11 +48,11 @@ __all__ = [
 DEFAULT_MAX_ITER = 20
 """Gauss-Newton iterations at most."""
 
-DEFAULT_TOL = 1e-12
+DEFAULT_TOL = tol.correction
 """Convergence: every element distance at most this (metres); Gauss-Newton converges
 quadratically, so this costs at most one step more than 1e-9."""
 
-DEFAULT_RCOND = 1e-7
+DEFAULT_RCOND = tol.correction_rcond
 """Rank cut of the SVD step: singular values below ``rcond * s_max`` of the scaled Jacobian
 are treated as zero (the scaled Jacobian is dimensionless, O(1) entries)."""
 
@@ -254,22 +253,9 @@ def _step_poses(omega: FloatArray, v_c: FloatArray, c: FloatArray) -> FloatArray
 
 
 def _check_poses(X_EG_seq: npt.ArrayLike) -> FloatArray:
+    """Poses (n, 4, 4) or one (4, 4) as (n, 4, 4), checked by :func:`apo.spatial.check_poses`."""
     X = np.array(X_EG_seq, dtype=np.float64)
-    if X.ndim == 2:
-        X = X[None]
-    if X.ndim != 3 or X.shape[1:] != (4, 4):
-        raise ValueError(f"poses must have shape (n, 4, 4) or (4, 4), got {np.shape(X_EG_seq)}")
-    if not np.all(np.isfinite(X)):
-        bad = np.flatnonzero(~np.isfinite(X).all(axis=(1, 2)))
-        raise ValueError(f"poses have non-finite entries at frame(s) {bad[:5].tolist()}")
-    R = X[:, :3, :3]
-    err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(R) <= 0))
-    if len(bad):
-        raise ValueError(
-            f"pose rotation part is not a rotation matrix at frame(s) {bad[:5].tolist()}"
-        )
-    return X
+    return check_poses(X[None] if X.ndim == 2 else X)
 
 
 def _rotation_angles(R: FloatArray) -> FloatArray:

@@ -25,9 +25,7 @@ import numpy.typing as npt
 
 from apo.constants import Tolerances, tol
 from apo.errors import InputFormatError
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from apo.typing import BoolArray, FloatArray
 
 
 @dataclass(frozen=True)
@@ -137,7 +135,7 @@ class DofGeometry:
 
 @dataclass(frozen=True)
 class DofResult:
-    """Every DOF index of a contact state (THEORY.md, paper sections 2.2 and 3.5).
+    """Every DOF index of a contact state (docs/theory.md, paper sections 2.2 and 3.5).
 
     In a singular state the regular ``translation``/``rotation``/``all`` are all zero and the
     analysis of the non-singular elements is in ``singular_dof``; in a non-singular state

@@ -29,10 +29,7 @@ from scipy.spatial import cKDTree
 
 from apo.constants import tol
 from apo.errors import GeometryError
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "LocalSolid",

@@ -14,13 +14,12 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.geometry import (
-    FloatArray,
-    IntArray,
     Polyhedron,
     _plane_basis,
     polyhedron_from_triangles,
     triangulate_polygon,
 )
+from apo.typing import FloatArray, IntArray
 
 __all__ = [
     "block_with_square_hole",

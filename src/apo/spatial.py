@@ -8,11 +8,16 @@ velocity of the point at the origin of the frame the twist is expressed in.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-FloatArray = npt.NDArray[np.float64]
+from apo.constants import tol
+from apo.errors import InputFormatError
+from apo.typing import FloatArray
 
 
 def check_quaternion(q: npt.ArrayLike) -> FloatArray:
@@ -134,3 +139,114 @@ def rotation_angle(R: npt.ArrayLike) -> float:
     M = np.asarray(R, dtype=float)
     c = (np.trace(M) - 1.0) / 2.0
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+# --------------------------------------------------------------------------------------------
+# The pose validator
+# --------------------------------------------------------------------------------------------
+
+
+def pose_defect(X: npt.ArrayLike) -> tuple[int, str, str] | None:
+    """Find the first pose of ``X`` (N, 4, 4) that is not a finite rigid transform.
+
+    The one rule of a valid pose: finite entries, a 3x3 block ``R`` with
+    ``max |R R^T - I| <= tol.rotation`` and ``det R > 0``, last row ``0 0 0 1`` (within the
+    same tolerance).
+
+    Returns
+    -------
+    tuple of (int, str, str) or None
+        ``(index, what, description)`` with ``what`` one of ``"finite"``, ``"rotation"``,
+        ``"last row"``; None when every pose is valid.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X = np.stack([np.eye(4), np.diag([1.0, 1.0, 2.0, 1.0])])
+    >>> pose_defect(X)[:2]
+    (1, 'rotation')
+    >>> pose_defect(np.eye(4)[None]) is None
+    True
+    """
+    M = np.asarray(X, dtype=np.float64)
+    finite = np.isfinite(M).all(axis=(1, 2))
+    if not finite.all():
+        return int(np.argmin(finite)), "finite", "is not finite"
+    R = M[:, :3, :3]
+    err = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    det = np.linalg.det(R) if len(M) else np.zeros(0)
+    bad = (err > tol.rotation) | (det <= 0)
+    if bad.any():
+        k = int(np.argmax(bad))
+        return (
+            k,
+            "rotation",
+            f"rotation part is not a rotation matrix (max |R R^T - I| = {err[k]:.1e}, "
+            f"tolerance {tol.rotation:g}; det {det[k]:.3g})",
+        )
+    last = np.any(np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]) > tol.rotation, axis=1)
+    if last.any():
+        return int(np.argmax(last)), "last row", "last row is not 0 0 0 1"
+    return None
+
+
+def check_pose(X: npt.ArrayLike, *, name: str = "X_EG") -> FloatArray:
+    """Return ``X`` as a float (4, 4) pose after checking it is a finite rigid transform.
+
+    Raises
+    ------
+    InputFormatError
+        (a ``ValueError``) naming ``name``: wrong shape, non-finite entries, a 3x3 block that
+        is not a rotation (:data:`apo.constants.tol` ``.rotation``), or a last row other than
+        ``0 0 0 1``.
+
+    Examples
+    --------
+    >>> check_pose(np.eye(3))
+    Traceback (most recent call last):
+    ...
+    apo.errors.InputFormatError: X_EG must have shape (4, 4), got shape (3, 3)
+    """
+    M = np.asarray(X, dtype=np.float64)
+    if M.shape != (4, 4):
+        raise InputFormatError(f"{name} must have shape (4, 4), got shape {M.shape}")
+    defect = pose_defect(M[None])
+    if defect is not None:
+        raise InputFormatError(f"{name} {defect[2]}")
+    return M
+
+
+def check_poses(
+    X_seq: Iterable[npt.ArrayLike] | npt.ArrayLike, *, name: str = "X_EG"
+) -> FloatArray:
+    """Return poses as a float (N, 4, 4) array after checking each as :func:`check_pose`.
+
+    ``X_seq`` is an array (N, 4, 4) or an iterable of (4, 4) poses; the message of a bad one
+    starts with ``pose <index>:``.
+
+    Raises
+    ------
+    InputFormatError
+        (a ``ValueError``) naming the first bad pose and what is wrong with it.
+    """
+    if isinstance(X_seq, np.ndarray) and X_seq.ndim == 3:
+        items: Sequence[Any] | FloatArray = np.asarray(X_seq, dtype=np.float64)
+    else:
+        items = list(X_seq)  # type: ignore[arg-type]
+        if not items:
+            return np.zeros((0, 4, 4))
+    try:
+        M = np.asarray(items, dtype=np.float64)
+    except ValueError:
+        M = np.zeros((0,))
+    if M.ndim == 3 and M.shape[1:] == (4, 4):
+        defect = pose_defect(M)
+        if defect is None:
+            return M
+        raise InputFormatError(f"pose {defect[0]}: {name} {defect[2]}")
+    for k, X in enumerate(items):  # find the pose of the wrong shape
+        try:
+            check_pose(X, name=name)
+        except InputFormatError as exc:
+            raise InputFormatError(f"pose {k}: {exc}") from None
+    raise InputFormatError(f"{name} sequence must have shape (N, 4, 4), got shape {M.shape}")

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from apo.spatial import FloatArray
+from apo.typing import FloatArray
 
 __all__ = [
     "Symmetry",

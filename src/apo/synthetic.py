@@ -4,7 +4,7 @@ Each builder returns a :class:`SyntheticDemo`: two polyhedra, the true pose of t
 object G in the environment frame E at every frame (computed analytically, so every scripted
 contact holds to ~1e-12 m), the true contact state of every frame, and the expected DOF
 numbers, sub-skills and critical transitions written by hand from the paper's rules
-(THEORY.md "Sub-skills"; ``docs/synthetic.md`` gives the reasoning). :func:`add_noise` makes
+(docs/theory.md "Sub-skills"; ``docs/synthetic.md`` gives the reasoning). :func:`add_noise` makes
 observed poses from the true ones (Gaussian pose noise, outliers, dropped frames; seeded).
 
 Demonstrations:
@@ -35,10 +35,7 @@ from apo.contact import ContactFinder, Feature
 from apo.geometry import Polyhedron, polyhedron_from_triangles
 from apo.shapes import block_with_square_hole, box, t_peg, triangles_from_polygons, u_block
 from apo.spatial import matrix_from_axis_angle
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from apo.typing import BoolArray, FloatArray, IntArray
 
 StateKey = frozenset[tuple[str, Feature, Feature]]
 SubSkill = tuple[str, str, str | None]

@@ -20,12 +20,12 @@ from typing import Any, Literal, cast
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import UNITS
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
 from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
 from apo.transitions import SubSkill, SubSkillKind
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = [
     "KINDS",
@@ -53,8 +53,6 @@ __all__ = [
 SCHEMA = "apo.task/1"
 """Schema identifier written in and required from ``task.json``."""
 
-UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-"""Length units a task may be written in, and their size in metres."""
 
 KINDS = ("VF", "FV", "EE", "VE", "EV", "VV")
 """Contact element kinds (grasped feature first)."""

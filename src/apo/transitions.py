@@ -30,11 +30,12 @@ import numpy.typing as npt
 
 from apo.dof import DofGeometry, DofResult
 from apo.errors import InputFormatError
+from apo.spatial import check_pose
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.contact import ContactState
 
-FloatArray = npt.NDArray[np.float64]
 Six = tuple[int, int, int, int, int, int]
 Space = Literal["translation", "rotation"]
 
@@ -881,12 +882,7 @@ def _subskills_of_space(
 
 
 def _check_pose(x: npt.ArrayLike | None, name: str) -> FloatArray | None:
-    if x is None:
-        return None
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
-        raise InputFormatError(f"{name} must be a finite 4x4 pose, got shape {arr.shape}")
-    return arr
+    return None if x is None else check_pose(x, name=name)
 
 
 def analyze_transition(

@@ -8,7 +8,6 @@ default runs the command and returns the exit code.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 import warnings
@@ -16,9 +15,6 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 from apo.errors import ApoError
-
-# Command modules, in the order `apo --help` lists them.
-COMMANDS = ("dof", "contacts", "analyze", "demo", "track", "report", "figures", "plan", "replay")
 
 
 @contextmanager
@@ -47,8 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser.add_argument("--version", action="version", version=f"apo {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
-        importlib.import_module(f"apo.cli.{name}").register(sub)
+    # Plain imports (tools see them); inside the function because the command modules
+    # import this package. One line per command, in the order `apo --help` lists them.
+    from apo.cli import analyze, contacts, demo, dof, figures, plan, replay, report, track
+
+    for module in (dof, contacts, analyze, demo, track, report, figures, plan, replay):
+        module.register(sub)
     return parser
 
 

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 from apo.outputs import OutputSet
 from apo.outputs import atomic_file as atomic_path
@@ -42,7 +43,7 @@ __all__ = [
 #: Inputs with at least this many frames get a progress bar (on stderr).
 PROGRESS_MIN_FRAMES = 500
 
-_UNITS = ("mm", "cm", "m", "in")
+_UNITS = ("mm", *(u for u in UNITS if u != "mm"))  # apo.constants.UNITS, mm first
 
 
 def register(subparsers: Any) -> None:

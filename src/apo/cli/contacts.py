@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 
 from apo.cli import warnings_to_stderr
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 
-# Same as apo.io.meshes.UNITS; repeated so that registering the command stays cheap.
-_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+_UNITS = UNITS  # the one units table (apo.constants, a leaf module: cheap to import)
 
 
 def register(subparsers: Any) -> None:

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, TextIO
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 
 if TYPE_CHECKING:
@@ -26,8 +27,6 @@ if TYPE_CHECKING:
     from apo.outputs import OutputSet
     from apo.perception.track import TrackResult
     from apo.symmetry import Symmetry
-
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
 
 def _pose_arg(text: str, name: str, scale: float) -> npt.NDArray[np.float64]:

@@ -45,12 +45,14 @@ from apo.contact.search import (
 )
 from apo.contact.thresholds import (
     DEFAULT_THRESHOLD_FRACTION,
+    OBSERVED_THRESHOLD_FRACTION,
     default_angle_tolerance,
     default_threshold,
 )
 
 __all__ = [
     "DEFAULT_THRESHOLD_FRACTION",
+    "OBSERVED_THRESHOLD_FRACTION",
     "ContactElement",
     "ContactFinder",
     "ContactKind",

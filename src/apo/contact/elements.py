@@ -100,7 +100,7 @@ class ContactState:
         Sorted by ``key``.
     touching : frozenset of (Feature, Feature)
         Every (grasped feature, environment feature) pair within the threshold; Donald's
-        inclusion test compares these sets (THEORY.md pitfalls).
+        inclusion test compares these sets (docs/theory.md pitfalls).
     """
 
     elements: tuple[ContactElement, ...]

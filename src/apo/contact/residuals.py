@@ -10,8 +10,8 @@ import numpy.typing as npt
 from apo.contact._arrays import _plane_basis
 from apo.contact.elements import ContactElement, ContactKind
 from apo.contact.model_data import _model_data, _ModelData
-from apo.contact.thresholds import _check_pose
 from apo.geometry import Polyhedron
+from apo.spatial import check_pose as _check_pose
 from apo.typing import FloatArray, IntArray
 
 _N_RESIDUALS = {

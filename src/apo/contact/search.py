@@ -20,14 +20,11 @@ from apo.contact.distance_tests import _by_frame, _edge_pairs, _near_features, _
 from apo.contact.elements import ContactState
 from apo.contact.model_data import _model_data, _ModelData
 from apo.contact.separating_normals import _cone_pairs
-from apo.contact.thresholds import (
-    _check_pose,
-    _check_poses,
-    default_angle_tolerance,
-    default_threshold,
-)
+from apo.contact.thresholds import default_angle_tolerance, default_threshold
 from apo.dof import ContactPoint
 from apo.geometry import Polyhedron
+from apo.spatial import check_pose as _check_pose
+from apo.spatial import check_poses as _check_poses
 from apo.typing import FloatArray, IntArray
 
 # Models with more (query points x primitives) than this use the k-d trees.

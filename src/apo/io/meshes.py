@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import UNITS
 from apo.errors import GeometryError, InputFormatError
 from apo.geometry import Polyhedron, polyhedron_from_triangles
 
@@ -36,8 +37,6 @@ __all__ = [
     "step_length_unit",
 ]
 
-UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-"""Length units accepted by ``units=``, and their size in metres."""
 
 MESH_SUFFIXES: dict[str, str] = {
     ".step": "step",

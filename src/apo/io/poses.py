@@ -51,15 +51,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import UNITS, tol
 from apo.errors import InputFormatError
 from apo.spatial import (
     matrix_from_axis_angle,
     matrix_from_quaternion,
     quaternion_from_matrix,
 )
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from apo.typing import FloatArray, IntArray
 
 __all__ = [
     "CSV_COLUMNS",
@@ -73,8 +72,6 @@ __all__ = [
     "write_pose_list",
 ]
 
-UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-"""Length units accepted by ``units=``, and their size in metres."""
 
 DEFAULT_UNITS = "mm"
 """Units assumed by :func:`load_demonstration` when none are given (the author's data)."""
@@ -513,7 +510,7 @@ def _check_rotations(path: Path, x: FloatArray) -> FloatArray:
     """Return the 3x3 blocks of poses ``x`` (N, 4, 4); raise if one is not a rotation."""
     r = x[:, :3, :3]
     err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(r) <= 0))
+    bad = np.flatnonzero((err > tol.rotation) | (np.linalg.det(r) <= 0))
     if bad.size:
         raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
     return r

@@ -37,8 +37,7 @@ from apo.motion.program import (
 )
 from apo.spatial import invert_pose, matrix_from_axis_angle
 from apo.task import Element, ModelRef, State, SubSkill, TaskModel
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = ["plan"]
 

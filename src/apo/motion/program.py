@@ -32,8 +32,7 @@ from apo.task import (
     _Reader,
     _vec,
 )
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = [
     "SCHEMA",

@@ -25,9 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from apo.motion.program import SkillProgram
 from apo.spatial import invert_pose
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from apo.typing import FloatArray, IntArray
 
 __all__ = ["Trajectory", "min_jerk", "trajectory"]
 

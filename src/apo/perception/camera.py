@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from apo.errors import InputFormatError
 from apo.spatial import pose_from_xyz_quat, position_quaternion_from_pose
+from apo.typing import FloatArray
 
 __all__ = [
     "DEFAULT_FPS",
@@ -33,7 +34,6 @@ __all__ = [
     "write_camera",
 ]
 
-FloatArray = npt.NDArray[np.float64]
 DEFAULT_FPS = 30.0
 """Frame rate assumed when a sequence has no ``timestamps.txt`` (t = index / 30 s)."""
 

@@ -19,11 +19,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.perception.frames import Camera
 from apo.perception.render import DepthNoise, Triangles, pose_looking_at, render_demonstration
 from apo.spatial import invert_pose, pose_from_position_quaternion
+from apo.typing import FloatArray
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
@@ -40,8 +40,6 @@ __all__ = [
     "render_synthetic",
     "synthetic_camera",
 ]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def _prism(

@@ -38,6 +38,7 @@ from apo.perception.camera import (
 )
 from apo.perception.layout import check_numbering, frame_indices, read_times
 from apo.perception.stereo import open_stereo
+from apo.typing import FloatArray
 
 __all__ = [
     "DEFAULT_FPS",
@@ -52,8 +53,6 @@ __all__ = [
     "write_frame",
     "write_timestamps",
 ]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def _read_png(path: Path, *, kind: str, camera: Camera) -> npt.NDArray[Any]:

@@ -12,13 +12,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.errors import InputFormatError
+from apo.typing import FloatArray
 
 __all__ = ["check_numbering", "frame_indices", "read_times"]
 
-FloatArray = npt.NDArray[np.float64]
 _FRAME_NAME = re.compile(r"^(\d{6})\.png$")
 
 

@@ -40,6 +40,7 @@ from apo.errors import ApoError
 from apo.perception.frames import Camera
 from apo.perception.render import Triangles, rasterize
 from apo.spatial import invert_pose, transform_points
+from apo.typing import FloatArray
 
 __all__ = [
     "ModelCloud",
@@ -51,8 +52,6 @@ __all__ = [
     "penetration",
     "register",
 ]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def open3d() -> Any:

@@ -31,6 +31,7 @@ from apo.perception.frames import (
     write_timestamps,
 )
 from apo.spatial import invert_pose, transform_points
+from apo.typing import FloatArray, IntArray
 
 __all__ = [
     "DepthNoise",
@@ -46,8 +47,6 @@ __all__ = [
     "render_scene",
 ]
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 Triangles = tuple[FloatArray, IntArray]
 
 WHITE = (0.92, 0.92, 0.90)

@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.perception.frames import Camera
+from apo.typing import BoolArray, FloatArray
 
 __all__ = [
     "ColourModel",
@@ -36,9 +37,6 @@ __all__ = [
     "occupancy",
     "static_mask",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass(frozen=True)

@@ -30,10 +30,9 @@ import numpy.typing as npt
 from apo.errors import ApoError, InputFormatError
 from apo.perception.camera import DEFAULT_FPS, Camera, camera_from_json, read_calibration
 from apo.perception.layout import check_numbering, frame_indices, read_times
+from apo.typing import FloatArray
 
 __all__ = ["StereoFrames", "depth_from_disparity", "disparity_sgbm", "open_stereo"]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def _cv2() -> Any:

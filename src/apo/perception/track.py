@@ -56,11 +56,9 @@ from apo.perception.segment import (
 )
 from apo.spatial import invert_pose, transform_points
 from apo.symmetry import Symmetry, nearest_twin, symmetries
+from apo.typing import BoolArray, FloatArray
 
 __all__ = ["TrackOptions", "TrackResult", "track_frames"]
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass(frozen=True)

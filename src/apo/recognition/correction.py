@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import tol
 from apo.contact import ContactElement, ContactState
 from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
@@ -27,7 +28,7 @@ __all__ = [
 
 #: Pose correction: iterations, and the residual (metres) below which it has converged.
 CORRECTION_MAX_ITER = 12
-CORRECTION_TOL = 1e-7
+CORRECTION_TOL = tol.correction_screening  # why it differs from tol.correction: constants
 
 
 def correct_poses(

@@ -33,10 +33,18 @@ def viterbi(emission: FloatArray, transition: FloatArray) -> tuple[IntArray, flo
 
     Examples
     --------
+    Frame 1 prefers state 1 by 3; two switches cost 2, so the path visits it:
+
     >>> e = np.array([[0.0, 5], [3, 0], [0, 5]])
-    >>> tr = np.array([[0.0, 1], [1, 0]])
-    >>> viterbi(e, tr)[0].tolist()
-    [0, 0, 0]
+    >>> path, cost = viterbi(e, np.array([[0.0, 1], [1, 0]]))
+    >>> path.tolist(), cost
+    ([0, 1, 0], 2.0)
+
+    With switches costing 2 each, staying in state 0 (cost 3) is cheaper than 4:
+
+    >>> path, cost = viterbi(e, np.array([[0.0, 2], [2, 0]]))
+    >>> path.tolist(), cost
+    ([0, 0, 0], 3.0)
     """
     n, k = emission.shape
     back = np.empty((n, k), dtype=np.int64)

@@ -2,31 +2,27 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import numpy.typing as npt
 
+from apo.contact import OBSERVED_THRESHOLD_FRACTION
+from apo.contact import default_threshold as contact_default_threshold
 from apo.errors import InputFormatError
 from apo.geometry import Polyhedron
 from apo.recognition.types import FloatArray
+from apo.spatial import pose_defect
 
 __all__ = ["FAR_FACTOR", "THRESHOLD_FRACTION", "check_scale", "check_sequence", "default_threshold"]
 
-THRESHOLD_FRACTION = 0.035
-"""Default contact threshold of recognition, as a fraction of the smaller model's ``scale``.
+THRESHOLD_FRACTION = OBSERVED_THRESHOLD_FRACTION
+"""Default contact threshold of recognition, as a fraction of the smaller model's ``scale``
+(``apo.contact.OBSERVED_THRESHOLD_FRACTION``, where the choice is explained)."""
 
-Observed poses carry vision noise of millimetres; the contact finder's own default (a
-fraction of a millimetre for a 10 cm part) suits exact poses, not observations. 3.5 % of the
-bounding diagonal is 4.1 mm for the first author's 118 mm peg, the order of the paper's
-threshold for its stereo data.
-"""
-
-
-def default_threshold(grasped: Polyhedron, environment: Polyhedron) -> float:
-    """Return the default contact threshold for observed poses (metres).
-
-    ``THRESHOLD_FRACTION`` times the smaller of the two models' bounding diagonals.
-    """
-    return THRESHOLD_FRACTION * min(grasped.scale, environment.scale)
+default_threshold = functools.partial(contact_default_threshold, observed=True)
+"""``default_threshold(grasped, environment)``: the default contact threshold for observed
+poses (metres), :func:`apo.contact.default_threshold` with ``observed=True``."""
 
 
 def check_sequence(
@@ -49,9 +45,9 @@ def check_sequence(
     t = np.arange(n, dtype=np.float64) if times is None else np.asarray(times, dtype=np.float64)
     if t.shape != (n,):
         raise InputFormatError(f"{source}: expected {n} time stamps, got shape {t.shape}")
-    bad = ~np.isfinite(X).all(axis=(1, 2))
-    if bad.any():
-        raise InputFormatError(f"{source}: frame {int(np.argmax(bad))}: pose is not finite")
+    defect = pose_defect(X)  # the one rule of a valid pose (apo.spatial)
+    if defect is not None and defect[1] == "finite":
+        raise InputFormatError(f"{source}: frame {defect[0]}: pose is not finite")
     if not np.isfinite(t).all():
         raise InputFormatError(
             f"{source}: frame {int(np.argmax(~np.isfinite(t)))}: time is not finite"
@@ -59,15 +55,8 @@ def check_sequence(
     back = np.diff(t) < 0
     if back.any():
         raise InputFormatError(f"{source}: frame {int(np.argmax(back)) + 1}: time goes backwards")
-    R = X[:, :3, :3]
-    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(R)
-    nonrigid = (err > 1e-4) | (det < 0) | np.any(np.abs(X[:, 3] - [0, 0, 0, 1]) > 1e-9, axis=1)
-    if nonrigid.any():
-        raise InputFormatError(
-            f"{source}: frame {int(np.argmax(nonrigid))}: not a rigid pose (rotation not "
-            "orthonormal or last row not 0 0 0 1)"
-        )
+    if defect is not None:
+        raise InputFormatError(f"{source}: frame {defect[0]}: not a rigid pose ({defect[2]})")
     return t, X
 
 

@@ -11,7 +11,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
+
+from apo.typing import BoolArray as BoolArray  # re-exported for the recognition stages
+from apo.typing import FloatArray as FloatArray
+from apo.typing import IntArray as IntArray
 
 if TYPE_CHECKING:
     from apo.contact import ContactFinder, ContactState
@@ -19,9 +22,6 @@ if TYPE_CHECKING:
     from apo.recognition.noise import NoiseEstimate
     from apo.task import TaskModel
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
 ElementKey = tuple[str, tuple[str, int], tuple[str, int]]
 """``ContactElement.key``: (kind, grasped feature, environment feature)."""
 StateKey = frozenset[ElementKey]

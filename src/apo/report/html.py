@@ -58,6 +58,7 @@ __all__ = [
     "write_report",
 ]
 
+
 MAX_REPLAY_FRAMES = 6000
 """Frames of the replay at most; longer demonstrations are decimated (state ends kept)."""
 

@@ -9,8 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.task import TaskModel
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = ["plot_dof"]
 

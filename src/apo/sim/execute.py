@@ -32,11 +32,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.sim.hand import Hand
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = ["STALL_TIME", "PrimitiveRun", "run_playback", "run_program"]
 

@@ -30,8 +30,7 @@ import numpy.typing as npt
 
 from apo.errors import GeometryError
 from apo.geometry import Polyhedron
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = [
     "MAX_PIECES",

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.geometry import Polyhedron
 from apo.sim.execute import PrimitiveRun, run_playback, run_program
@@ -31,8 +30,7 @@ from apo.sim.pieces import Decomposition, convex_pieces
 from apo.sim.scene import DEFAULT_CLEARANCE, ContactParameters, build_scene
 from apo.spatial import matrix_from_axis_angle
 from apo.task import TaskModel
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = ["SAMPLE_PERIOD", "ReplayResult", "Visit", "random_motion", "replay"]
 

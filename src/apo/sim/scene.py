@@ -20,8 +20,7 @@ import numpy.typing as npt
 from apo.geometry import Polyhedron
 from apo.sim.pieces import ConvexPiece, Decomposition, convex_pieces, shrink_piece
 from apo.spatial import position_quaternion_from_pose
-
-FloatArray = npt.NDArray[np.float64]
+from apo.typing import FloatArray
 
 __all__ = [
     "DEFAULT_CLEARANCE",
