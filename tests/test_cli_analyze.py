@@ -220,3 +220,60 @@ def test_plot_worker_draws_in_a_child_process(tmp_path):
     idle = PlotWorker()
     idle.close()  # released without a plot: the child exits, nothing is written
     assert idle.pid is None
+
+
+def _feature_distance(poly, feature, p):
+    """Distance (model units) from point ``p`` (model frame) to a feature ``[kind, index]``."""
+    kind, i = feature
+    V = poly.vertices
+    if kind == "v":
+        return float(np.linalg.norm(p - V[i]))
+    if kind == "e":
+        a, b = V[poly.edges[i]]
+        t = np.clip(np.dot(p - a, b - a) / np.dot(b - a, b - a), 0.0, 1.0)
+        return float(np.linalg.norm(p - (a + t * (b - a))))
+    n = poly.face_normals[i]
+    return abs(float(np.dot(n, p - V[poly.faces[i][0]])))
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_demo_task_feature_ids_are_those_of_its_own_model_files(tmp_path, capsys, seed):
+    """Every element of task.json names features of grasped.stl / environment.stl at its point."""
+    from apo.io.meshes import load_polyhedron
+    from apo.spatial import invert_pose, pose_from_position_quaternion
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--seed", str(seed), "--no-plot", "--no-report"]) == 0
+    capsys.readouterr()
+    data = json.loads((out / "task.json").read_text())
+    k = 1e-3  # task units: mm
+    G = load_polyhedron(out / data["models"]["grasped"]["path"], units="mm")
+    E = load_polyhedron(out / data["models"]["environment"]["path"], units="mm")
+    tol = 2 * data["threshold"] * k
+    checked = 0
+    for state in data["states"]:
+        X_EG = pose_from_position_quaternion(
+            np.array(state["pose"]["position"]) * k, state["pose"]["quaternion"]
+        )
+        X_GE = invert_pose(X_EG)
+        for el in state["elements"]:
+            p_E = np.array(el["point"]) * k
+            p_G = X_GE[:3, :3] @ p_E + X_GE[:3, 3]
+            assert _feature_distance(G, el["grasped"], p_G) < tol, (state["id"], el)
+            assert _feature_distance(E, el["environment"], p_E) < tol, (state["id"], el)
+            checked += 1
+    assert checked >= 5
+
+
+def test_repeated_runs_write_byte_identical_sets(tmp_path, capsys):
+    """The same command twice gives the same bytes in every output file (manifest included)."""
+    sets = []
+    for run in ("a", "b"):
+        out = tmp_path / run
+        assert main(["demo", "--out", str(out), "--seed", "4", "--no-report"]) == 0
+        sets.append({p.relative_to(out).as_posix(): p.read_bytes() for p in out.rglob("*")})
+    capsys.readouterr()
+    assert sorted(sets[0]) == sorted(sets[1])
+    assert {"task.json", "frames.csv", "dof.png", ".apo-outputs.json"} <= set(sets[0])
+    for name, data in sets[0].items():
+        assert data == sets[1][name], name

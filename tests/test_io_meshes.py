@@ -347,3 +347,41 @@ def test_cache_off_or_unwritable_still_reads(tmp_path, monkeypatch):
     entry.write_bytes(b"garbage")
     v, _ = load_triangles(path)
     assert np.ptp(v[:, 0]) == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize(("units", "k"), [("mm", 1e3), ("cm", 1e2), ("in", 1 / 0.0254)])
+def test_mesh_errors_and_warnings_speak_the_models_units(tmp_path: Path, units: str, k: float):
+    """Points, lengths and volumes in messages are in the file's units, not metres (issue 12)."""
+    rng = np.random.default_rng(3)
+    v, t = peg_triangles()
+    shift = rng.uniform(-0.05, 0.05, size=3)
+    numbers = (v + shift) * k
+    path = write_mesh(tmp_path / "open.stl", numbers, t[1:])
+    with pytest.raises(GeometryError) as info:
+        load_polyhedron(path, units=units)
+    msg = str(info.value)
+    found = re.findall(rf"\[([^\]]+)\] {re.escape(units)}\b", msg)
+    assert len(found) == 2, msg
+    for text in found:
+        p = np.array([float(x) for x in text.split(",")])
+        # the point is one of the file's own vertices, as written in the file
+        assert np.min(np.abs(numbers - p).max(axis=1)) < 1e-4 * k * 0.1, msg
+    c = shapes.box([0.04, 0.04, 0.04])
+    tri = np.concatenate(c.face_triangles)
+    path = write_mesh(tmp_path / "inside_out.stl", c.vertices * k, tri[:, ::-1])
+    with pytest.warns(
+        UserWarning, match=r"negative volume -6\.4e\+0?4 mm\^3" if units == "mm" else "inside-out"
+    ) as rec:
+        load_polyhedron(path, units=units)
+    assert f" {units}^3" in str(rec[0].message) and " m^3" not in str(rec[0].message)
+
+
+def test_messages_in_metres_are_left_alone() -> None:
+    from apo.io.meshes import in_model_units
+
+    text = "mesh is not closed: e.g. between [0.1, 0.2, 0.3] and [0.4, 0.5, 0.6]; 1e-06 m"
+    assert in_model_units(text, "m") == text
+    assert in_model_units(text, "mm") == (
+        "mesh is not closed: e.g. between [100, 200, 300] mm and [400, 500, 600] mm; 0.001 mm"
+    )
+    assert in_model_units("volume -0.001 m^3", "mm") == "volume -1e+06 mm^3"

@@ -197,7 +197,11 @@ def test_csv_round_trip(tmp_path):
 
 def test_csv_without_header_comments_and_unnormalised_quaternion(tmp_path):
     text = "# recorded by hand\n0.0,1,2,3,2,0,0,0,0.9\n\n0.5,1,2,4,1,0,0,1,0.8\n"
-    dem = read_pose_csv(write(tmp_path, text, "p.csv"), units="cm")
+    # normalised, and the norms far from 1 are reported with their lines (issue 12)
+    with pytest.warns(
+        UserWarning, match=r"2 line\(s\) .*norm far from 1.*line 2 \(norm 2\), line 4"
+    ):
+        dem = read_pose_csv(write(tmp_path, text, "p.csv"), units="cm")
     np.testing.assert_allclose(dem.X_EG[0], pose([0, 0, 1], 0, [0.01, 0.02, 0.03]))
     np.testing.assert_allclose(
         dem.X_EG[1][:3, :3], matrix_from_axis_angle([0, 0, 1], np.pi / 2), atol=1e-15
@@ -267,3 +271,47 @@ def test_load_demonstration_dispatches_and_overrides(tmp_path):
     assert dem2.n_frames == 1 and dem2.environment_path == tmp_path / "e.step"
     with pytest.raises(InputFormatError, match=r"unknown demonstration format '.txt'"):
         load_demonstration(write(tmp_path, SMALL, "demo.txt"))
+
+
+def test_quaternions_within_the_tolerance_are_normalised_silently(tmp_path):
+    from apo.io.poses import QUATERNION_NORM_TOLERANCE
+
+    rng = np.random.default_rng(7)
+    rows = [HEAD.strip()]
+    for k in range(50):
+        q = rng.normal(size=4)
+        q *= (1.0 + rng.uniform(-0.9, 0.9) * QUATERNION_NORM_TOLERANCE) / np.linalg.norm(q)
+        rows.append(",".join(repr(float(v)) for v in [k, 1, 2, 3, *q]))
+    dem = read_pose_csv(write(tmp_path, "\n".join(rows) + "\n", "p.csv"), units="mm")
+    assert dem.n_frames == 50
+    rows[12] = rows[12].rsplit(",", 4)[0] + ",4,0,0,0"
+    rows[30] = rows[30].rsplit(",", 4)[0] + ",0,0,0.25,0"
+    with pytest.warns(UserWarning, match=r"p2.csv: 2 line\(s\).*line 13 \(norm 4\), line 31"):
+        read_pose_csv(write(tmp_path, "\n".join(rows) + "\n", "p2.csv"), units="mm")
+
+
+def test_a_long_garbage_line_is_quoted_cut(tmp_path):
+    from apo.errors import InputFormatError
+    from apo.io.poses import EXCERPT_CHARS
+
+    text = "t,x," + "y" * 5000 + "\n1,2,3\n"
+    with pytest.raises(InputFormatError) as exc:
+        read_pose_csv(write(tmp_path, text, "g.csv"), units="mm")
+    msg = str(exc.value)
+    assert "line 1" in msg and "(5004 characters)" in msg
+    assert len(msg) < EXCERPT_CHARS + 200
+
+
+@pytest.mark.parametrize("suffix", [".pose.list", ".csv"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_binary_files_are_blamed_on_their_first_binary_line(tmp_path, suffix, seed):
+    from apo.errors import InputFormatError
+    from apo.io.poses import load_demonstration
+
+    rng = np.random.default_rng(seed)
+    good = "No of Models: 2\n" if suffix == ".pose.list" else HEAD
+    for body, line in ((rng.bytes(4000), 2), (bytes(300) + b"\n1\n", 2)):
+        p = tmp_path / f"b{suffix}"
+        p.write_bytes(good.encode() + body)
+        with pytest.raises(InputFormatError, match=rf"b{suffix}: line {line}: not a text file"):
+            load_demonstration(p, grasped=p, environment=p)

@@ -290,3 +290,103 @@ def test_a_kill_during_a_large_write_leaves_the_old_or_the_new_set_whole(tmp_pat
     # the next writer cleans what the killed ones left beside the destination
     subprocess.run([sys.executable, "-c", _WRITER, str(dest), "last-", "1"], env=_env(), check=True)
     no_temporaries(tmp_path)
+
+
+# ---- through the command line ----------------------------------------------------------------
+
+
+def _forbid_recognition(monkeypatch: pytest.MonkeyPatch) -> None:
+    import apo.recognition
+
+    def boom(*a: object, **k: object) -> None:
+        raise AssertionError("the analysis ran before the destination was checked")
+
+    monkeypatch.setattr(apo.recognition, "recognize_frames", boom)
+
+
+@pytest.mark.parametrize("command", ["demo", "analyze"])
+@pytest.mark.parametrize("case", ["existing-file", "under-a-file"])
+def test_bad_out_exits_2_before_the_analysis(tmp_path, capsys, monkeypatch, command, case):
+    from apo.cli import main
+
+    _forbid_recognition(monkeypatch)
+    f = tmp_path / "results"
+    f.write_text("not a folder")
+    out = f if case == "existing-file" else f / "sub"
+    args = [command, "--out", str(out)]
+    if command == "analyze":
+        demo = tmp_path / "d.csv"
+        demo.write_text("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n")
+        args = ["analyze", str(demo), "--grasped", "g.stl", "--environment", "e.stl", *args[1:]]
+    code = main(args)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert f"apo {command}: error: --out" in err and "Traceback" not in err
+    assert ("is an existing file" if case == "existing-file" else "is a file, not a folder") in err
+    assert f.read_text() == "not a folder"
+
+
+def test_a_second_apo_on_the_same_out_is_refused(tmp_path, capsys, monkeypatch) -> None:
+    from apo.cli import main
+
+    _forbid_recognition(monkeypatch)
+    out = tmp_path / "out"
+    with OutputSet(out) as outs:  # another run holds the folder
+        outs.write_text("task.json", "first")
+        code = main(["demo", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "another apo process is writing this output folder" in err and "pid" in err
+    assert err.count("--out") == 2  # "--out OUT: another ...; ... choose another --out"
+    assert (out / "task.json").read_text() == "first"
+
+
+@pytest.mark.slow
+def test_two_concurrent_runs_never_mix_their_files(tmp_path: Path) -> None:
+    """Two `apo demo` into one --out at once: one is refused (exit 2) or they run in turn."""
+    out = tmp_path / "out"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "apo.cli", "demo", "--out", str(out), "--seed", str(s)],
+            env=_env(),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for s in (1, 2)
+    ]
+    results = [(p.wait(), p.stderr.read() if p.stderr else "") for p in procs]
+    for p in procs:
+        if p.stderr:
+            p.stderr.close()
+    codes = sorted(c for c, _ in results)
+    assert codes in ([0, 0], [0, 2]), results
+    for c, err in results:
+        if c == 2:
+            assert "another apo process is writing this output folder" in err
+    assert_whole(out)
+    source = json.loads((out / "task.json").read_text())["source"]
+    seed = source.split("seed ")[1].rstrip(")")
+    report = (out / "report.html").read_text()
+    assert f"apo demo (seed {seed})" in report  # the report is of the same run as task.json
+    no_temporaries(tmp_path)
+
+
+def test_the_cli_respects_the_umask(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    r = subprocess.run(
+        [
+            "sh",
+            "-c",
+            f'umask 027 && exec "$0" -m apo.cli demo --no-report --out {out}',
+            sys.executable,
+        ],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_mode & 0o777 == 0o750
+    for p in out.rglob("*"):
+        assert p.stat().st_mode & 0o777 == (0o750 if p.is_dir() else 0o640), p

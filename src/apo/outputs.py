@@ -257,7 +257,10 @@ class _Lock:
             if same:
                 break
             os.close(fd)
-        cmd = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv))
+        prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+        if prog in ("__main__.py", "-c", "-m"):
+            prog = "apo"
+        cmd = " ".join([prog, *sys.argv[1:]])
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()}: {cmd[:200]}\n".encode(), 0)
         self.fd = fd
@@ -304,6 +307,9 @@ class OutputSet:
             self._lock.acquire()
             self._recover()
             staging = tempfile.mkdtemp(prefix=f".{self.dest.name}{_NEW}", dir=self.dest.parent)
+        except OutputError:
+            self._abandon()
+            raise
         except OSError as exc:
             self._abandon()
             raise OutputError(

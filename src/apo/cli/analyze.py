@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from collections.abc import Callable
@@ -20,6 +19,7 @@ from apo.report.writer import (
     model_ref,
     report_maker,
     sha256_of,
+    task_document,
     write_recognition,
 )
 
@@ -33,6 +33,8 @@ __all__ = [
     "atomic_path",
     "frames_csv",
     "model_ref",
+    "print_result",
+    "print_written",
     "register",
     "report",
     "report_maker",
@@ -125,10 +127,17 @@ def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, 
 
 def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None:
     """Print the table (or the JSON) and where the outputs went."""
-    if as_json:
-        from apo.task import task_to_dict
+    print_result(rec, as_json=as_json)
+    print_written(written)
 
-        print(json.dumps(task_to_dict(rec.task), indent=2))
+
+def print_result(rec: Recognition, *, as_json: bool, task_text: str | None = None) -> None:
+    """Print the Fig. 25-style table and a summary, or ``task.json`` (``task_text`` if given)."""
+    if as_json:
+        from apo.report.writer import task_document
+
+        text = task_text if task_text is not None else task_document(rec)[1]
+        print(text, end="", flush=True)
         return
     from apo.report.table import render_table
 
@@ -138,10 +147,34 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
     print(
         f"{n} frames, {len(rec.task.states)} states, {len(rec.task.transitions)} transitions; "
         f"pose correction failed at {failed} frame(s); {int(rec.repaired.sum())} frame(s) "
-        f"repaired"
+        f"repaired",
+        flush=True,
     )
+
+
+def print_written(written: dict[str, Path]) -> None:
+    """Print ``wrote <what>: <path>`` per output file."""
     for k, p in written.items():
         print(f"wrote {k}: {p}")
+
+
+def _warn_scale(
+    G: Polyhedron,
+    E: Polyhedron,
+    X_EG: Any,
+    units: str,
+    threshold: float | None,
+    paths: tuple[Path, Path],
+) -> None:
+    """Print a warning if the poses do not fit the models' size (exit status unchanged)."""
+    from apo.io.meshes import MESH_SUFFIXES
+    from apo.io.plausibility import scale_warnings
+
+    meshes = any(MESH_SUFFIXES.get(p.suffix.lower()) != "step" for p in paths)
+    for line in scale_warnings(
+        G, E, X_EG, units=units, threshold=threshold, models_follow_units=meshes
+    ):
+        print(f"apo analyze: warning: {line}", file=sys.stderr)
 
 
 def _load_models(
@@ -178,17 +211,17 @@ def run(args: argparse.Namespace) -> int:
     worker = None if args.no_plot else PlotWorker()
     try:
         with OutputSet(out, label="--out") as outs:  # checked and locked before the work
-            rec, written = _run(args, demo, outs, worker)
+            written = _run(args, demo, outs, worker)
     finally:
         if worker is not None:
             worker.close()
-    report(rec, written, as_json=args.json)
+    print_written(written)
     return 0
 
 
 def _run(
     args: argparse.Namespace, demo: Path, outs: OutputSet, worker: PlotWorker | None
-) -> tuple[Recognition, dict[str, Path]]:
+) -> dict[str, Path]:
     from apo.io import poses
     from apo.recognition import recognize_frames
 
@@ -202,9 +235,12 @@ def _run(
         from apo.cli.track import reject_tracking_options
 
         reject_tracking_options(args, demo)
-        dem = poses.load_demonstration(
-            demo, units=args.units, grasped=args.grasped, environment=args.environment
-        )
+        from apo.cli import warnings_to_stderr
+
+        with warnings_to_stderr("apo analyze"):
+            dem = poses.load_demonstration(
+                demo, units=args.units, grasped=args.grasped, environment=args.environment
+            )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
@@ -213,6 +249,7 @@ def _run(
     if threshold is not None and not threshold > 0:
         raise InputFormatError(f"--threshold must be positive, got {args.threshold}")
     noise = parse_noise(args.noise, UNITS[units])
+    _warn_scale(G, E, dem.X_EG, units, threshold, (gp, ep))
     progress, close = progress_bar(len(dem.X_EG), "contacts")
     try:
         rec = recognize_frames(
@@ -229,12 +266,14 @@ def _run(
         )
     finally:
         close()
-    written = write_recognition(
+    task = task_document(rec)
+    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
+    return write_recognition(
         outs,
         rec,
         plot=not args.no_plot,
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
+        task=task,
     )
-    return rec, written

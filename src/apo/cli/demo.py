@@ -24,11 +24,16 @@ import numpy as np
 
 from apo.errors import InputFormatError
 from apo.outputs import OutputSet
-from apo.report.writer import PlotWorker, model_ref_as, report_maker, write_recognition
+from apo.report.writer import (
+    PlotWorker,
+    model_ref_as,
+    report_maker,
+    task_document,
+    write_recognition,
+)
 
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
-    from apo.recognition import Recognition
 
 DEFAULT_OUT = "apo-demo"
 DEFAULT_NOISE_MM = 0.5
@@ -127,6 +132,23 @@ def _write_stl(poly: Polyhedron, path: Path, scale: float) -> None:
         fh.write(rec.tobytes())
 
 
+def _write_models(dem: DemoInput, outs: OutputSet) -> tuple[Polyhedron, Polyhedron]:
+    """Write the models as STL (mm) into ``outs``; return them as read back from those files.
+
+    The task's feature ids (``["v", 3]``, ``["e", 5]``) must be those of the files the task
+    names, so the recognition runs on the models re-read from them.
+    """
+    from apo.cli import warnings_to_stderr
+    from apo.io.meshes import load_polyhedron
+
+    loaded = []
+    for poly, name in ((dem.grasped, "grasped.stl"), (dem.environment, "environment.stl")):
+        _write_stl(poly, outs.path(name), 1000.0)
+        with warnings_to_stderr("apo demo"):
+            loaded.append(load_polyhedron(outs.path(name), units="mm", name=poly.name))
+    return loaded[0], loaded[1]
+
+
 def demonstration_from_args(args: argparse.Namespace, outs: OutputSet | None = None) -> DemoInput:
     """Return the demonstration the arguments ask for (the built-in example by default).
 
@@ -220,48 +242,47 @@ def _demonstration_from_frames(args: argparse.Namespace, outs: OutputSet) -> Dem
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo demo``; return the exit code."""
-    from apo.cli.analyze import report
+    from apo.cli.analyze import print_written
 
     worker = None if args.no_plot else PlotWorker()
     try:
         with OutputSet(args.out, label="--out") as outs:  # checked and locked before the work
-            rec, written = _run(args, outs, worker)
+            written = _run(args, outs, worker)
     finally:
         if worker is not None:
             worker.close()
-    report(rec, written, as_json=args.json)
+    print_written(written)
     return 0
 
 
-def _run(
-    args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None
-) -> tuple[Recognition, dict[str, Path]]:
+def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -> dict[str, Path]:
+    from apo.cli.analyze import print_result
     from apo.recognition import recognize_frames
 
     dem = demonstration_from_args(args, outs)
-    gpath, epath = outs.path("grasped.stl"), outs.path("environment.stl")
-    _write_stl(dem.grasped, gpath, 1000.0)
-    _write_stl(dem.environment, epath, 1000.0)
+    G, E = _write_models(dem, outs)
     rec = recognize_frames(
-        dem.grasped,
-        dem.environment,
+        G,
+        E,
         dem.times,
         dem.X_EG,
         units="mm",
         models=(
-            model_ref_as(gpath, outs.final("grasped.stl"), outs.given, dem.grasped.name),
-            model_ref_as(epath, outs.final("environment.stl"), outs.given, dem.environment.name),
+            model_ref_as(outs.path("grasped.stl"), outs.final("grasped.stl"), outs.given, G.name),
+            model_ref_as(
+                outs.path("environment.stl"), outs.final("environment.stl"), outs.given, E.name
+            ),
         ),
         source=dem.source,
     )
-    written = write_recognition(
+    task = task_document(rec)
+    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
+    return write_recognition(
         outs,
         rec,
         plot=not args.no_plot,
         title=f"DOF indices: {dem.source}",
         worker=worker,
-        report=None
-        if args.no_report
-        else report_maker(rec, dem.grasped, dem.environment, dem.X_EG, []),
+        report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, []),
+        task=task,
     )
-    return rec, written

@@ -32,6 +32,7 @@ __all__ = [
     "MESH_SUFFIXES",
     "UNITS",
     "cache_dir",
+    "in_model_units",
     "load_polyhedron",
     "load_triangles",
     "step_length_unit",
@@ -308,12 +309,17 @@ def load_polyhedron(
     label = name or path.name
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        unit = _model_unit(path, units)
         try:
             poly = polyhedron_from_triangles(vertices, triangles, name=label)
         except GeometryError as exc:
-            raise GeometryError(f"{path}: {_strip_label(str(exc), label)}") from exc
+            text = in_model_units(_strip_label(str(exc), label), unit)
+            raise GeometryError(f"{path}: {text}") from exc
         finally:
-            messages = [(w.category, _strip_label(str(w.message), label)) for w in caught]
+            messages = [
+                (w.category, in_model_units(_strip_label(str(w.message), label), unit))
+                for w in caught
+            ]
     for category, message in messages:
         warnings.warn(f"{path}: {message}", category, stacklevel=2)
     size = float(np.ptp(poly.vertices, axis=0).max())
@@ -329,6 +335,42 @@ def load_polyhedron(
             stacklevel=2,
         )
     return poly
+
+
+_LENGTHS: dict[str, float] = {**UNITS, "um": 1e-6, "km": 1e3, "ft": 0.3048}
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_POINT = re.compile(rf"\[\s*({_NUM})[,\s]+({_NUM})[,\s]+({_NUM})\s*\]")
+_VOLUME = re.compile(rf"({_NUM}) m\^3")
+_LENGTH = re.compile(rf"({_NUM}) m\b(?!\^)")
+
+
+def _model_unit(path: Path, units: str | None) -> str:
+    """Return the unit of the model file's numbers (a STEP file's own; else ``units``, mm)."""
+    if MESH_SUFFIXES.get(path.suffix.lower()) == "step":
+        try:
+            return step_length_unit(path) or "m"
+        except OSError:
+            return "m"
+    return units or DEFAULT_MESH_UNITS
+
+
+def in_model_units(message: str, unit: str) -> str:
+    """Rewrite the lengths of a geometry message (metres) in the model file's ``unit``.
+
+    Points ``[x, y, z]`` (or numpy's ``[x y z]``), ``<v> m^3`` and ``<d> m`` are converted;
+    points get the unit after them. A message in metres is returned as it is.
+    """
+    k = _LENGTHS.get(unit)
+    if k is None or unit == "m":
+        return message
+
+    def point(m: re.Match[str]) -> str:
+        a, b, c = (float(m.group(i)) / k for i in (1, 2, 3))
+        return f"[{a:.6g}, {b:.6g}, {c:.6g}] {unit}"
+
+    message = _POINT.sub(point, message)
+    message = _VOLUME.sub(lambda m: f"{float(m.group(1)) / k**3:.3g} {unit}^3", message)
+    return _LENGTH.sub(lambda m: f"{float(m.group(1)) / k:.3g} {unit}", message)
 
 
 def _strip_label(message: str, label: str) -> str:

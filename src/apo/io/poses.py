@@ -43,6 +43,7 @@ import csv
 import io
 import math
 import re
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -63,6 +64,8 @@ from apo.typing import FloatArray, IntArray
 __all__ = [
     "CSV_COLUMNS",
     "DEFAULT_UNITS",
+    "EXCERPT_CHARS",
+    "QUATERNION_NORM_TOLERANCE",
     "UNITS",
     "Demonstration",
     "load_demonstration",
@@ -156,24 +159,60 @@ def _scale(units: str, where: str) -> float:
     return UNITS[units]
 
 
+EXCERPT_CHARS = 80
+"""Longest piece of a file's line that an error message quotes."""
+
+QUATERNION_NORM_TOLERANCE = 0.01
+"""A CSV quaternion whose norm differs from 1 by more than this (1 %) is reported: it is
+normalised as always, but a warning names the lines (a norm of 4 is a scaled or garbled
+column, not rounding; six-decimal quaternions are within 1e-5)."""
+
+# control characters that never occur in a text pose file (tab, CR, LF, FF, VT are fine)
+_BINARY = re.compile(r"[\x00-\x08\x0e-\x1f\x7f]")
+
+
+def _excerpt(text: str, limit: int = EXCERPT_CHARS, *, quote: bool = True) -> str:
+    """``repr`` of ``text`` stripped and cut to ``limit`` characters (with the full length)."""
+    t = text.strip()
+    show = repr if quote else str
+    if len(t) <= limit:
+        return show(t)
+    return f"{show(t[:limit])}... ({len(t)} characters)"
+
+
 def _read_text(path: Path) -> str:
+    """Return the file's text; binary content is blamed on the first line that holds it."""
     if not path.is_file():
         raise InputFormatError(f"{path}: file not found")
     try:
-        return path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputFormatError(f"{path}: not a text file ({exc.reason})") from None
+        raw = path.read_bytes()
     except OSError as exc:
         raise InputFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise InputFormatError(
+            f"{path}: line {line}: not a text file (byte 0x{raw[exc.start]:02x} is not UTF-8)"
+        ) from None
+    m = _BINARY.search(text)
+    if m is not None:
+        line = text.count("\n", 0, m.start()) + 1
+        col = m.start() - (text.rfind("\n", 0, m.start()) + 1) + 1
+        raise InputFormatError(
+            f"{path}: line {line}: not a text file (control character {m.group()!r} at "
+            f"column {col})"
+        )
+    return text
 
 
 def _number(token: str, where: str, what: str) -> float:
     try:
         value = float(token)
     except ValueError:
-        raise InputFormatError(f"{where}: {what} is not a number: {token!r}") from None
+        raise InputFormatError(f"{where}: {what} is not a number: {_excerpt(token)}") from None
     if not math.isfinite(value):
-        raise InputFormatError(f"{where}: {what} is not finite: {token!r}")
+        raise InputFormatError(f"{where}: {what} is not finite: {_excerpt(token)}")
     return value
 
 
@@ -236,7 +275,7 @@ def read_pose_list(
             raise InputFormatError(f"{path}: line {i + 1}: expected '{name}: N', found end of file")
         m = pattern.match(lines[i])
         if m is None:
-            raise InputFormatError(f"{where(i)}: expected '{name}: N', got {lines[i].strip()!r}")
+            raise InputFormatError(f"{where(i)}: expected '{name}: N', got {_excerpt(lines[i])}")
         try:
             n = int(m.group(1))
         except ValueError:
@@ -263,7 +302,7 @@ def read_pose_list(
         i += 1
     if i < n_lines and lines[i].strip() and not _HEADER_SCENES.match(lines[i]):
         raise InputFormatError(
-            f"{where(i)}: expected {n_models} model paths, found more: {lines[i].strip()!r}"
+            f"{where(i)}: expected {n_models} model paths, found more: {_excerpt(lines[i])}"
         )
     n_scenes, i = expect_header(i, _HEADER_SCENES, "No of Scenes")
 
@@ -373,12 +412,12 @@ def _pose_line(line: str, where: str, scale: float) -> tuple[int, FloatArray]:
     if len(tokens) != 8:
         raise InputFormatError(
             f"{where}: expected 8 fields 'tag x y z ax ay az angle', got {len(tokens)}: "
-            f"{line.strip()!r}"
+            f"{_excerpt(line)}"
         )
     try:
         tag = int(tokens[0])
     except ValueError:
-        raise InputFormatError(f"{where}: tag is not an integer: {tokens[0]!r}") from None
+        raise InputFormatError(f"{where}: tag is not an integer: {_excerpt(tokens[0])}") from None
     names = ("x", "y", "z", "ax", "ay", "az", "angle")
     vals = [_number(t, where, nm) for t, nm in zip(tokens[1:], names, strict=True)]
     axis = np.array(vals[3:6])
@@ -450,12 +489,15 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
         if tuple(names[:8]) != CSV_COLUMNS:
             raise InputFormatError(
                 f"{path}: line {head_line}: header must begin with {','.join(CSV_COLUMNS)}, "
-                f"got {','.join(head)}"
+                f"got {_excerpt(','.join(head))}"
             )
         names = names[:8] + head[8:]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
-            raise InputFormatError(f"{path}: line {head_line}: repeated column names {sorted(dup)}")
+            raise InputFormatError(
+                f"{path}: line {head_line}: repeated column names "
+                f"{_excerpt(str(sorted(dup)), quote=False)}"
+            )
         rows = rows[1:]
         if not rows:
             raise InputFormatError(f"{path}: header only, no rows (empty sequence)")
@@ -472,6 +514,7 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
     x_eg = np.zeros((n, 4, 4))
     extra = np.zeros((n, width - 8))
     lines = np.zeros(n, dtype=np.int64)
+    norms = np.ones(n)
     for k, (lineno, fields) in enumerate(rows):
         where = f"{path}: line {lineno}"
         if len(fields) != width:
@@ -482,10 +525,11 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
                 extra[k, j - 8] = float(fields[j])
             except ValueError:
                 raise InputFormatError(
-                    f"{where}: column {names[j]!r} is not a number: {fields[j]!r}"
+                    f"{where}: column {_excerpt(names[j])} is not a number: {_excerpt(fields[j])}"
                 ) from None
         q = np.array(vals[4:8])
-        if float(np.linalg.norm(q)) < 1e-9:
+        norms[k] = float(np.linalg.norm(q))
+        if norms[k] < 1e-9:
             raise InputFormatError(f"{where}: quaternion (qw, qx, qy, qz) is zero")
         if k and not vals[0] > times[k - 1]:
             raise InputFormatError(
@@ -496,6 +540,7 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
         x_eg[k, :3, :3] = matrix_from_quaternion(q)
         x_eg[k, :3, 3] = np.array(vals[1:4]) * scale
         lines[k] = lineno
+    _warn_quaternion_norms(path, norms, lines)
     return Demonstration(
         times=times,
         X_EG=x_eg,
@@ -503,6 +548,21 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
         source=path,
         extra={names[j]: extra[:, j - 8].copy() for j in range(8, width)},
         lines=lines,
+    )
+
+
+def _warn_quaternion_norms(path: Path, norms: FloatArray, lines: IntArray) -> None:
+    """Warn once, naming the lines, if quaternion norms differ from 1 beyond the tolerance."""
+    bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE)
+    if not bad.size:
+        return
+    shown = ", ".join(f"line {int(lines[i])} (norm {norms[i]:.4g})" for i in bad[:5])
+    more = f", ... ({bad.size - 5} more)" if bad.size > 5 else ""
+    warnings.warn(
+        f"{path}: {bad.size} line(s) have a quaternion of norm far from 1 (by more than "
+        f"{QUATERNION_NORM_TOLERANCE:g}), normalised: {shown}{more}",
+        UserWarning,
+        stacklevel=3,
     )
 
 

@@ -39,6 +39,7 @@ __all__ = [
     "model_ref_as",
     "report_maker",
     "sha256_of",
+    "task_document",
     "write_recognition",
 ]
 
@@ -197,6 +198,14 @@ def frames_csv(rec: Recognition) -> str:
     return "\n".join(lines) + "\n"
 
 
+def task_document(rec: Recognition) -> tuple[dict[str, Any], str]:
+    """Return ``task.json`` of ``rec`` as a document and as its text (serialised once)."""
+    from apo.task import task_to_dict
+
+    doc = task_to_dict(rec.task)
+    return doc, json.dumps(doc, indent=2) + "\n"
+
+
 def write_recognition(
     outs: OutputSet,
     rec: Recognition,
@@ -205,24 +214,23 @@ def write_recognition(
     title: str | None = None,
     worker: PlotWorker | None = None,
     report: ReportWriter | None = None,
+    task: tuple[dict[str, Any], str] | None = None,
 ) -> dict[str, Path]:
     """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) into ``outs``.
 
     ``report(path, task_doc, task_json)`` writes ``report.html`` to ``path`` given the task
     document and its JSON text as written to ``task.json`` (serialised once, embedded as
-    is; see :func:`report_maker`); ``worker``
-    draws the plot while this process writes the rest. Returns ``{what: final path}``
+    is; see :func:`report_maker`); ``worker`` draws the plot while this process writes the
+    rest; ``task`` is :func:`task_document` of ``rec`` if the caller has it already. Returns
+    ``{what: final path}``
     (``task``, ``frames``, ``plot``, ``report``); the files appear there when ``outs`` commits.
     """
-    from apo.task import task_to_dict
-
     written: dict[str, Path] = {}
     want_plot = plot and bool(rec.task.states)
     png = outs.path("dof.png")
     submitted = want_plot and worker is not None and worker.submit(rec, png, title)
-    doc = task_to_dict(rec.task)
-    task_json = json.dumps(doc, indent=2) + "\n"  # as outs.write_json; reused by the report
-    written["task"] = outs.write_text("task.json", task_json)
+    doc, text = task if task is not None else task_document(rec)
+    written["task"] = outs.write_text("task.json", text)
     written["frames"] = outs.write_text("frames.csv", frames_csv(rec))
     if want_plot:
         if not (submitted and worker is not None and worker.result(png)):
@@ -231,7 +239,7 @@ def write_recognition(
             plot_dof(rec.task, png, times=rec.times, title=title)
         written["plot"] = outs.final("dof.png")
     if report is not None:
-        report(outs.path("report.html"), doc, task_json)
+        report(outs.path("report.html"), doc, text)
         written["report"] = outs.final("report.html")
     return written
 
