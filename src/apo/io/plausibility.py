@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import UNITS
+
 if TYPE_CHECKING:
     from apo.geometry import Polyhedron
 
@@ -33,7 +35,7 @@ __all__ = ["EXTENT_RATIO", "scale_warnings"]
 EXTENT_RATIO = (1e-2, 1e2)
 """Plausible range of (extent of G's motion) / (smaller model's bounding-box diagonal)."""
 
-_UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+_UNITS = UNITS
 
 
 def _facts(
