@@ -346,6 +346,7 @@ def register(
     coarse: bool = True,
     dense: bool = True,
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
+    free_space_tolerance: float = 0.005,
 ) -> Registration:
     """Robust point-to-plane ICP of a model to observed points, from an initial pose.
 
@@ -380,6 +381,9 @@ def register(
     obstacle : (ModelCloud, ndarray of shape (4, 4)), optional
         The other object and its pose in the camera frame: enables the interpenetration
         check (see :func:`penetration`).
+    free_space_tolerance : float, optional
+        Depth (metres) behind the model beyond which an observed pixel violates free space
+        (a few standard deviations of the depth noise; see :func:`free_space_violation`).
 
     Returns
     -------
@@ -413,7 +417,9 @@ def register(
     violation = 0.0
     if depth is not None and camera is not None:
         step = 2 if camera.width * camera.height >= FREE_SPACE_FULL_PIXELS else 1
-        violation = free_space_violation(X_CM, model, depth, camera, step=step)
+        violation = free_space_violation(
+            X_CM, model, depth, camera, step=step, tolerance=free_space_tolerance
+        )
     pen = penetration(X_CM, model, obstacle) if obstacle is not None else 0.0
     return Registration(X_CM, fitness, rmse, violation, len(P), pen)
 
@@ -437,6 +443,32 @@ def _candidate_rotations(points_C: FloatArray, model: ModelCloud) -> list[FloatA
     return out
 
 
+def distinct_up_to_symmetry(
+    rotations: list[FloatArray], symmetry_rotations: npt.ArrayLike | None, *, angle: float = 0.2
+) -> list[FloatArray]:
+    """Drop candidate orientations that a symmetry of the model maps near an earlier one.
+
+    ``R`` and ``R @ S`` (``S`` a symmetry's rotation, model frame) show the same object, so a
+    search needs one of them: a T-peg halves the 84 candidates, a square peg divides them
+    by about 8. ``angle`` (radians) is the distance below which two are the same.
+    """
+    if symmetry_rotations is None:
+        return rotations
+    S = np.asarray(symmetry_rotations, dtype=np.float64).reshape(-1, 3, 3)
+    if len(S) <= 1:
+        return rotations
+    limit = 1.0 + 2.0 * np.cos(angle)  # trace of a rotation by ``angle``
+    kept: list[FloatArray] = []
+    for R in rotations:
+        twins = np.einsum("ij,kjl->kil", R, S)  # (K, 3, 3)
+        if any(
+            np.max(np.einsum("kji,ji->k", twins, Q)) > limit for Q in kept
+        ):  # trace(twin^T Q) > limit: within ``angle``
+            continue
+        kept.append(R)
+    return kept
+
+
 def initialise(
     points_C: npt.ArrayLike,
     model: ModelCloud,
@@ -449,6 +481,8 @@ def initialise(
     keep: int = 6,
     seed: int | np.random.Generator | None = 0,
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
+    free_space_tolerance: float = 0.005,
+    symmetry_rotations: npt.ArrayLike | None = None,
 ) -> Registration:
     """Find a model's pose from its observed points without an initial guess.
 
@@ -477,11 +511,16 @@ def initialise(
         Seed of the point subsampling.
     obstacle : (ModelCloud, ndarray of shape (4, 4)), optional
         The other object and its pose: candidates that penetrate it lose confidence.
+    free_space_tolerance : float, optional
+        See :func:`register`.
+    symmetry_rotations : ndarray, shape (K, 3, 3), optional
+        Rotations of the model's symmetries (:func:`apo.symmetry.symmetries`): candidate
+        orientations that differ by one are tried once (:func:`distinct_up_to_symmetry`).
 
     Returns
     -------
     Registration
-        The most confident candidate.
+        The most confident candidate (any of its symmetric twins).
     """
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
@@ -495,7 +534,7 @@ def initialise(
     # the model's size behind the points.
     for depth_offset in (model.diameter / 6, model.diameter / 3):
         centre = c + ray * depth_offset
-        for R in _candidate_rotations(P, model):
+        for R in distinct_up_to_symmetry(_candidate_rotations(P, model), symmetry_rotations):
             X = np.eye(4)
             X[:3, :3] = R
             X[:3, 3] = centre - R @ model.centroid
@@ -503,6 +542,7 @@ def initialise(
                 register(
                     sub, model, X, inlier_distance=inlier_distance, loss=loss, iterations=12,
                     depth=depth, camera=camera, obstacle=obstacle, dense=False,
+                    free_space_tolerance=free_space_tolerance,
                 )
             )  # fmt: skip
     scored.sort(key=lambda r: -r.confidence)
@@ -518,6 +558,7 @@ def initialise(
             depth=depth,
             camera=camera,
             obstacle=obstacle,
+            free_space_tolerance=free_space_tolerance,
         )
         if best is None or r.confidence > best.confidence:
             best = r

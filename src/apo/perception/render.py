@@ -54,6 +54,12 @@ WHITE = (0.92, 0.92, 0.90)
 TABLE = (0.35, 0.30, 0.25)
 """Albedo of the supporting table (textured)."""
 SKIN = (0.85, 0.60, 0.45)
+TABLE_COLOURS: dict[str, tuple[float, float, float]] = {
+    "textured": TABLE,
+    "grey": (0.55, 0.55, 0.55),
+    "white": WHITE,
+}
+"""Albedo of the table of :func:`render_demonstration` by ``table_colour``."""
 """Albedo of the occluding hand."""
 
 
@@ -424,14 +430,18 @@ def _rotated(mesh: Triangles, R: FloatArray) -> Triangles:
     return np.asarray(mesh[0], dtype=np.float64) @ R.T, mesh[1]
 
 
-def hand_triangles(grasped: Triangles, *, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> Triangles:
+def hand_triangles(
+    grasped: Triangles, *, up: npt.ArrayLike = (0.0, 0.0, 1.0), arm: bool = False
+) -> Triangles:
     """Return a simple hand (thumb, finger and wrist boxes) holding ``grasped`` from the side.
 
     The boxes are in the grasped object's frame (metres). With ``up = +z``: two 12 mm-thick
     fingers press on the ``+-y`` faces of the upper third of its bounding box, joined by a
     wrist box that leaves towards ``+x`` and up, so the hand occludes part of the object
-    from most views. Another ``up`` (a direction in the grasped object's frame) turns the
-    whole construction so that ``+z`` becomes ``up`` (see :func:`_frame_with_z_up`).
+    from most views. ``arm`` adds a forearm (0.25 m long, 60 mm thick) leaving the wrist
+    upwards and outwards, as a person's would. Another ``up`` (a direction in the grasped
+    object's frame) turns the whole construction so that ``+z`` becomes ``up`` (see
+    :func:`_frame_with_z_up`).
     """
     R = _frame_with_z_up(up)
     V = np.asarray(grasped[0], dtype=np.float64) @ R.T
@@ -448,7 +458,16 @@ def hand_triangles(grasped: Triangles, *, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -
         (wrist_len, size[1] + 2 * t, 0.03),
         (c[0] + size[0] * 0.3 + wrist_len / 2, c[1], hi[2] + 0.015),
     )
-    return _rotated(concatenate([thumb, index, wrist]), R.T)
+    parts = [thumb, index, wrist]
+    if arm:
+        L = 0.25
+        parts.append(
+            box_triangles(
+                (L * 0.8, 0.06, 0.06),
+                (c[0] + size[0] * 0.3 + wrist_len + 0.4 * L, c[1], hi[2] + 0.015 + 0.35 * L),
+            )
+        )
+    return _rotated(concatenate(parts), R.T)
 
 
 def _table_triangles(
@@ -491,6 +510,8 @@ def render_demonstration(
     table: bool = True,
     background: bool = True,
     up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    table_colour: str = "textured",
+    arm: bool = False,
 ) -> Path:
     """Render a demonstration into a frames folder (the layout of ``docs/perception.md``).
 
@@ -525,6 +546,11 @@ def render_demonstration(
         The up direction, in the environment's frame for the table (perpendicular to it,
         under the environment's lowest point) and in the grasped object's frame for the
         hand (which holds its upper part). Default ``+z``.
+    table_colour : {"textured", "grey", "white"}, optional
+        The table: a brown procedural texture, plain mid grey (which passes a "white"
+        chromaticity test), or plain white (the parts' own colour).
+    arm : bool, optional
+        With ``hand``, add the forearm (:func:`hand_triangles`).
 
     Returns
     -------
@@ -561,24 +587,29 @@ def render_demonstration(
     static: list[Triangles] = []
     static_poses: list[FloatArray] = []
     static_albedo: list[tuple[float, float, float]] = []
+    if table_colour not in TABLE_COLOURS:
+        raise ValueError(
+            f"table_colour must be one of {', '.join(TABLE_COLOURS)}, got {table_colour!r}"
+        )
+    tex = table_colour == "textured"
     if table:
         static.append(_table_triangles(E, up=up))
         static_poses.append(XCE)
-        static_albedo.append(TABLE)
+        static_albedo.append(TABLE_COLOURS[table_colour])
     if background:
         if static:
-            bg = render_scene(static, static_poses, camera, albedo=static_albedo, textured=[True])
+            bg = render_scene(static, static_poses, camera, albedo=static_albedo, textured=[tex])
             bg_rgb, bg_depth = _noisy(bg, model, rng)
         else:
             bg_rgb = np.zeros((camera.height, camera.width, 3), dtype=np.uint8)
             bg_depth = np.zeros((camera.height, camera.width), dtype=np.float32)
         write_background(out, bg_rgb, bg_depth, camera)
-    H = hand_triangles(G, up=up) if hand else None
+    H = hand_triangles(G, up=up, arm=arm) if hand else None
     # The table and the environment do not move: render them once, then only the grasped
     # object (and the hand) per frame, composited by depth (the same z-buffer test).
     still = render_scene(
         [*static, E], [*static_poses, XCE], camera,
-        albedo=[*static_albedo, WHITE], textured=[table] + [False] * len(static) if table else None,
+        albedo=[*static_albedo, WHITE], textured=[tex] + [False] * len(static) if table else None,
     )  # fmt: skip
     for i, X in enumerate(XEG):
         XCG = XCE @ X

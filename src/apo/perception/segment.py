@@ -29,7 +29,9 @@ from apo.typing import BoolArray, FloatArray
 
 __all__ = [
     "ColourModel",
+    "DepthNoiseModel",
     "Plane",
+    "estimate_depth_noise",
     "fit_support_plane",
     "foreground_from_background",
     "foreground_from_plane",
@@ -87,6 +89,69 @@ class ColourModel:
         for k in range(3):
             d2 += (c[:, :, k] / s - ref[k]) ** 2
         return np.asarray(ok & (d2 <= np.float32(self.max_chroma**2)), dtype=bool)
+
+
+@dataclass(frozen=True)
+class DepthNoiseModel:
+    """Depth noise of a sensor: ``sigma(z) = sqrt((c z^2)^2 + q^2 / 12)`` (metres).
+
+    Structured-light and time-of-flight sensors have a noise growing with the square of the
+    distance (``c`` in metres per square metre: 1e-3 to 6e-3 for common RGB-D cameras) and a
+    quantisation step ``q`` (the depth unit of the recording).
+
+    Attributes
+    ----------
+    c : float
+        Metres per square metre.
+    quantum : float
+        Depth quantisation step, metres.
+    """
+
+    c: float
+    quantum: float = 0.0
+
+    def sigma(self, z: npt.ArrayLike) -> FloatArray:
+        """Return the standard deviation (metres) of a depth ``z`` (metres)."""
+        zz = np.asarray(z, dtype=np.float64)
+        return np.asarray(np.hypot(self.c * zz * zz, self.quantum / np.sqrt(12.0)))
+
+
+def estimate_depth_noise(
+    depths: npt.ArrayLike, *, quantum: float = 0.0, min_pixels: int = 1000
+) -> DepthNoiseModel:
+    """Estimate ``c`` of ``sigma(z) = c z^2`` from several depth frames of one recording.
+
+    Differences of a pixel's depth between consecutive frames are noise where the scene is
+    static (most of an image: the table, the environment): ``d_k - d_(k-1)`` has standard
+    deviation ``sqrt(2) sigma(z)``. The median of ``|d_k - d_(k-1)| / z^2`` over all pixels
+    valid in both frames, divided by ``0.6745 sqrt(2)`` (the median absolute value of a unit
+    normal, times the square root of 2), is a robust estimate of ``c``: moving pixels (fewer
+    than half) do not shift a median much.
+
+    Parameters
+    ----------
+    depths : ndarray, shape (N >= 2, H, W)
+        Depth frames, metres, 0 where none.
+    quantum : float, optional
+        The recording's depth unit (metres), kept in the model.
+    min_pixels : int, optional
+        Fewer valid pixel pairs than this: ValueError.
+
+    Returns
+    -------
+    DepthNoiseModel
+    """
+    D = np.asarray(depths, dtype=np.float64)
+    if D.ndim != 3 or len(D) < 2:
+        raise ValueError(f"need at least 2 depth frames of shape (H, W), got {D.shape}")
+    a, b = D[1:], D[:-1]
+    ok = (a > 0) & (b > 0)
+    if int(np.count_nonzero(ok)) < min_pixels:
+        raise ValueError(f"only {int(np.count_nonzero(ok))} pixels with depth in two frames")
+    z = (a[ok] + b[ok]) / 2
+    ratio = np.abs(a[ok] - b[ok]) / (z * z)
+    c = float(np.median(ratio)) / (0.6745 * np.sqrt(2.0))
+    return DepthNoiseModel(c, quantum)
 
 
 @dataclass(frozen=True)
@@ -173,7 +238,7 @@ def foreground_from_background(
     depth: npt.ArrayLike,
     background_depth: npt.ArrayLike,
     *,
-    threshold: float = 0.004,
+    threshold: float | npt.ArrayLike = 0.004,
 ) -> BoolArray:
     """Pixels in front of the recorded background by more than ``threshold`` (metres).
 
@@ -182,8 +247,9 @@ def foreground_from_background(
     depth, background_depth : ndarray, shape (H, W)
         Depth in metres, 0 where there is no measurement. Pixels without background depth
         count as foreground when they have a depth.
-    threshold : float, optional
-        Metres; a few times the sensor noise at the working distance.
+    threshold : float or ndarray of shape (H, W), optional
+        Metres; a few standard deviations of the difference of the two depths (per pixel
+        when an array: the noise grows with the distance).
 
     Returns
     -------
@@ -196,9 +262,13 @@ def foreground_from_background(
 
 
 def foreground_from_plane(
-    depth: npt.ArrayLike, camera: Camera, plane: Plane, *, threshold: float = 0.004
+    depth: npt.ArrayLike,
+    camera: Camera,
+    plane: Plane,
+    *,
+    threshold: float | npt.ArrayLike = 0.004,
 ) -> BoolArray:
-    """Pixels whose 3-D point is more than ``threshold`` (metres) above the support plane."""
+    """Pixels whose 3-D point is more than ``threshold`` (metres; or per pixel) above the plane."""
     d = np.asarray(depth, dtype=np.float64)
     H, W = d.shape
     u = np.arange(W, dtype=np.float64)
@@ -236,7 +306,7 @@ def grasped_mask(
     depth: npt.ArrayLike,
     environment_depth: npt.ArrayLike,
     *,
-    threshold: float = 0.004,
+    threshold: float | npt.ArrayLike = 0.004,
 ) -> BoolArray:
     """Object pixels not explained by the environment: the grasped object's (and clutter).
 
@@ -248,8 +318,9 @@ def grasped_mask(
         The frame's depth, metres.
     environment_depth : ndarray, shape (H, W)
         Depth of the environment alone (its model rendered at its pose), 0 where absent.
-    threshold : float, optional
-        A pixel within this depth (metres) of the environment is the environment's.
+    threshold : float or ndarray of shape (H, W), optional
+        A pixel within this depth (metres; per pixel when an array) of the environment is
+        the environment's.
 
     Returns
     -------

@@ -1,0 +1,95 @@
+"""Recordings that vary like the world (apo.perception.variants) and the noise model.
+
+Depth-noise estimation from the recording (apo.perception.segment.estimate_depth_noise),
+the global search up to the model's symmetries, and tracking without initial poses on
+seeded random variants (camera, distance, elevation, table colour, noise c z^2, dropouts,
+hand and forearm, with or without background).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from apo.perception.example import peg_and_slot
+from apo.perception.frames import open_frames
+from apo.perception.segment import DepthNoiseModel, estimate_depth_noise
+from apo.perception.variants import CAMERAS, DEMOS, Variant, random_variant, render_variant
+from apo.symmetry import symmetries
+
+
+def test_random_variants_cover_the_documented_ranges() -> None:
+    vs = [random_variant(s) for s in range(200)]
+    assert all(0.3 <= v.distance <= 1.0 and 20 <= v.elevation <= 70 for v in vs)
+    assert all(1e-3 <= v.noise <= 6e-3 for v in vs)
+    assert {v.table for v in vs} == {"grey", "white", "textured"}
+    assert {v.camera for v in vs} == set(CAMERAS) and {v.demo for v in vs} == set(DEMOS)
+    assert {v.hand for v in vs} == {True, False} == {v.background for v in vs}
+    assert random_variant(7) == random_variant(7)
+
+
+def test_noise_model_sigma() -> None:
+    m = DepthNoiseModel(3e-3)
+    assert np.isclose(m.sigma(0.5), 0.75e-3)
+    assert np.isclose(DepthNoiseModel(0.0, 1e-3).sigma(1.0), 1e-3 / np.sqrt(12))
+    with pytest.raises(ValueError, match="at least 2 depth frames"):
+        estimate_depth_noise(np.zeros((1, 4, 4)))
+
+
+@pytest.mark.parametrize(("c", "seed"), [(1e-3, 0), (4e-3, 1), (6e-3, 2)])
+def test_noise_estimated_from_the_recording(tmp_path: Path, c: float, seed: int) -> None:
+    # A grey table, 15 frames of the moving peg: the estimate of c is within 15 % of the truth.
+    v = Variant("peg_in_hole_2d", "kinect_v1", float(np.random.default_rng(seed).uniform(0.4, 0.9)),
+                45.0, 10.0, "grey", c, 0.01, False, False, n_frames=15, seed=seed)  # fmt: skip
+    r = render_variant(v, tmp_path / "f")
+    src = open_frames(r.frames)
+    est = estimate_depth_noise(np.stack([src.depth(i) for i in range(len(src))]))
+    assert abs(est.c - c) / c < 0.15, est.c
+
+
+def test_global_search_tries_one_orientation_per_symmetric_twin() -> None:
+    from apo.perception.register import distinct_up_to_symmetry
+
+    rng = np.random.default_rng(0)
+    Rs = list(Rotation.random(40, random_state=rng).as_matrix())
+    peg, _ = peg_and_slot()
+    half = [s.S[:3, :3] for s in symmetries(*peg)]
+    doubled = Rs + [R @ half[1] for R in Rs]
+    kept = distinct_up_to_symmetry(doubled, half)
+    assert len(kept) == 40 and all(np.allclose(a, b) for a, b in zip(kept, Rs, strict=True))
+    assert len(distinct_up_to_symmetry(doubled, None)) == 80
+
+
+# Seed 3 (RealSense D435 at 0.47 m, 60 deg, grey table, hand and forearm): the first frame's
+# global search returns a pose 78 mm off with a confidence above the limit and tracking
+# follows it for 9 frames before a re-initialisation finds the part. The confidence does
+# not yet score the model surface predicted visible (issue 11, part 3): a known failure.
+KNOWN_WRONG_START = pytest.mark.xfail(
+    strict=True, reason="global search accepts a wrong first pose with the hand+arm (issue 11)"
+)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [pytest.param(3, marks=KNOWN_WRONG_START), 11])
+def test_tracking_random_variants_without_initial_poses(tmp_path: Path, seed: int) -> None:
+    pytest.importorskip("open3d")
+    from apo.perception.track import track_frames
+
+    v = random_variant(seed, demo="peg_in_hole_2d", n_frames=30)
+    r = render_variant(v, tmp_path / "f")
+    res = track_frames(r.frames, r.grasped, r.environment, units="m")
+    sym_G, sym_E = symmetries(*r.grasped), symmetries(*r.environment)
+    # One twin of the truth for the whole sequence: no flips, errors within the targets.
+    best = None
+    for a in sym_E:
+        for b in sym_G:
+            T = np.linalg.inv(a.S) @ r.demo.X_EG_true @ b.S
+            e = np.linalg.norm(res.X_EG[:, :3, 3] - T[:, :3, 3], axis=1) * 1e3
+            if best is None or np.nanmedian(e) < np.nanmedian(best):
+                best = e
+    assert best is not None
+    assert np.nanmedian(best) < 1.0 and np.nanpercentile(best, 95) < 3.0, v.label()
+    assert res.reinitialisations <= 2 and not res.lost.any(), v.label()
