@@ -123,10 +123,20 @@ def run_bounds(labels: IntArray) -> list[tuple[int, int]]:
 
 
 def constrained_path(
-    emission: FloatArray, feasible: BoolArray, switch: float, jump: float
+    emission: FloatArray,
+    feasible: BoolArray,
+    switch: float,
+    jump: float,
+    same: BoolArray | None = None,
+    same_cost: float = 0.0,
 ) -> IntArray:
-    """Viterbi path where a change costs ``switch``, plus ``jump`` if it is not direct."""
+    """Viterbi path where a change costs ``switch``, plus ``jump`` if it is not direct.
+
+    Where ``same[i, j]`` (a change that keeps every DOF number), ``same_cost`` is added.
+    """
     trans = np.where(feasible, switch, switch + jump)
+    if same is not None:
+        trans = trans + same_cost * same
     np.fill_diagonal(trans, 0.0)
     path, _cost = viterbi(emission, trans)
     return path

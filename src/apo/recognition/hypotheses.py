@@ -6,12 +6,16 @@ fails at every frame tried, the other hypotheses near the observed pose are trie
 
 - supersets: the elements found at larger thresholds (``RESCUE_SCALES`` times ``theta``);
 - subsets: the observed elements less one;
-- neighbours: the elements of the states observed just before and after the candidate.
+- neighbours: the elements of the states observed just before and after the candidate;
+- faces: each vertex-edge (edge-vertex) element replaced by the vertex on the face next to
+  the edge that it is closest to (a vertex seen near a face's boundary edge under noise is
+  often simply on the face).
 
 Each is corrected with looser plausibility limits than an ordinary correction (a rough
 estimate can be a few degrees off), and is accepted only if it *explains the observation*:
-every feature pair observed within the threshold touches at the corrected pose. Of the
-accepted ones, the one whose correction moves G least wins (largest vertex displacement).
+every feature pair observed within the threshold is still within the threshold at the
+corrected pose. Of the accepted ones, the one that makes most observed pairs touch exactly
+wins, then the one whose correction moves G least (largest vertex displacement).
 """
 
 from __future__ import annotations
@@ -21,9 +25,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from apo.contact import ContactElement, ContactFinder, ContactState
+from apo.contact import ContactElement, ContactFinder, ContactKind, ContactState
 from apo.correction import ContactConstraints
+from apo.geometry import Polyhedron
 from apo.recognition.correction import CORRECTION_MAX_ITER, CORRECTION_TOL
+from apo.recognition.distances import element_distances
 from apo.recognition.types import FloatArray, Scene
 
 __all__ = [
@@ -32,6 +38,7 @@ __all__ = [
     "RESCUE_SCALES",
     "Rescue",
     "hypotheses",
+    "on_faces",
     "rescue",
 ]
 
@@ -68,7 +75,41 @@ def hypotheses(
             add(observed.elements[:i] + observed.elements[i + 1 :])
     for s in neighbours:
         add(s.elements)
+    add(on_faces(G, E, X_EG, observed.elements))
     return list(out.values())
+
+
+def on_faces(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X_EG: FloatArray,
+    elements: Sequence[ContactElement],
+) -> tuple[ContactElement, ...]:
+    """Replace each VE (EV) element by the VF (FV) of the closest face next to its edge."""
+    R, p = X_EG[:3, :3], X_EG[:3, 3]
+    out: list[ContactElement] = []
+    for e in elements:
+        if e.kind is ContactKind.VE:
+            q = R @ grasped.vertices[e.grasped[1]] + p  # G's vertex in E
+            f = _closest_face(environment, e.environment[1], q)
+            n = environment.face_normals[f]
+            out.append(ContactElement(ContactKind.VF, e.grasped, ("f", f), q, n[None, :]))
+        elif e.kind is ContactKind.EV:
+            q = R.T @ (environment.vertices[e.environment[1]] - p)  # E's vertex in G
+            f = _closest_face(grasped, e.grasped[1], q)
+            n = -(R @ grasped.face_normals[f])
+            point = environment.vertices[e.environment[1]]
+            out.append(ContactElement(ContactKind.FV, ("f", f), e.environment, point, n[None, :]))
+        else:
+            out.append(e)
+    return tuple(out)
+
+
+def _closest_face(poly: Polyhedron, edge: int, q: FloatArray) -> int:
+    """Return the face next to ``edge`` whose plane is closest to ``q``."""
+    faces = [int(f) for f in poly.edge_faces[edge] if f >= 0]
+    heights = [abs(float(poly.face_normals[f] @ q - poly.face_offsets[f])) for f in faces]
+    return faces[int(np.argmin(heights))]
 
 
 def rescue(
@@ -79,21 +120,27 @@ def rescue(
 ) -> Rescue | None:
     """Best converged hypothesis over ``frames`` that explains ``observed``, or None.
 
-    Returns ``(X_EG corrected, frame, displacement)`` of the hypothesis whose correction
-    moves G least, among those that converge within ``RESCUE_REACH`` thresholds and
-    ``RESCUE_MAX_ROTATION`` and after which every touching pair of ``observed`` touches
-    (``scene.exact``).
+    Returns ``(X_EG corrected, frame, displacement)`` of the hypothesis that makes most
+    observed pairs touch, then moves G least, among those that converge within
+    ``RESCUE_REACH`` thresholds and ``RESCUE_MAX_ROTATION`` and after which every observed
+    pair is still within the threshold.
     """
-    best: Rescue | None = None
+    best: tuple[int, float, FloatArray, int] | None = None
     for f in frames:
         X0 = scene.X[f]
         for elements in hypotheses(scene, X0, observed, neighbours):
             found = _correct(scene, X0, elements)
-            if found is None or (best is not None and found[1] >= best[2]):
+            if found is None:
                 continue
-            if _explains(scene, found[0], observed):
-                best = (found[0], int(f), found[1])
-    return best
+            touched = _explains(scene, found[0], observed)
+            if touched < 0:
+                continue
+            rank = (-touched, found[1])
+            if best is None or rank < (best[0], best[1]):
+                best = (-touched, found[1], found[0], int(f))
+        if best is not None:  # frames come best first: the first that gives one decides
+            break
+    return None if best is None else (best[2], best[3], best[1])
 
 
 def _correct(
@@ -112,7 +159,16 @@ def _correct(
     return np.asarray(res.X_EG[0], dtype=np.float64), float(res.displacement[0])
 
 
-def _explains(scene: Scene, X: FloatArray, observed: ContactState) -> bool:
-    """Return True if every feature pair of the observed elements touches at ``X``."""
-    touching = scene.exact.find(X).touching
-    return all((e.grasped, e.environment) in touching for e in observed.elements)
+def _explains(scene: Scene, X: FloatArray, observed: ContactState) -> int:
+    """Count the observed pairs that touch at ``X``; -1 if some pair is no longer near.
+
+    Near: the two features within the recognition threshold; touching: within the tight
+    threshold of ``scene.exact`` (feature distances, ``element_distances``).
+    """
+    if not observed.elements:
+        return 0
+    keys = [e.key for e in observed.elements]
+    d = element_distances(scene.grasped, scene.environment, X[None], keys)[0]
+    if (d > scene.theta).any():
+        return -1
+    return int((d <= float(scene.exact.threshold)).sum())

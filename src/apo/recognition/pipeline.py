@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import TypeVar
 
@@ -45,6 +45,8 @@ from apo.recognition.noise import (
     outlier_frames,
 )
 from apo.recognition.types import (
+    BoolArray,
+    CandidateState,
     FloatArray,
     IntArray,
     Progress,
@@ -275,9 +277,24 @@ def segment(
         dists, an.keys, states, an.candidates, an.bridges, observed.labels, w
     )
     emission = np.where(scene.outliers[:, None] & np.isfinite(emission), 0.0, emission)
-    path = constrained_path(emission, an.feasible, w.switch, w.jump)
+    same = same_dof(an.candidates)
+    path = constrained_path(emission, an.feasible, w.switch, w.jump, same, w.same)
     canon = canonical_ids(an.candidates)
     return canon[path], canon[observed.labels], emission
+
+
+def same_dof(candidates: Sequence[CandidateState | None]) -> BoolArray:
+    """Pairs of analysed candidates with the same DOF numbers (six per space), (K, K)."""
+    sig = [
+        None if c is None else (c.dof.six("translation"), c.dof.six("rotation")) for c in candidates
+    ]
+    k = len(sig)
+    out = np.zeros((k, k), dtype=bool)
+    for i in range(k):
+        for j in range(i + 1, k):
+            if sig[i] is not None and sig[i] == sig[j]:
+                out[i, j] = out[j, i] = True
+    return out
 
 
 def build_task(

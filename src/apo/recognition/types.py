@@ -57,6 +57,10 @@ class SegmentationCosts:
         Two candidates whose observed frames are never within ``window`` frames of each
         other are not tested for a direct transition (treated as not direct); this keeps
         the number of tests near linear in the number of candidates.
+    same : float
+        Added to a change between two states with the same DOF numbers (every one of the
+        six per space): such a change has no sub-skill and, under noise, is mostly a
+        contact seen with more or fewer elements than it has.
     reach : float
         A bridging candidate (a state between two observed ones, observed at no frame) is
         kept only if its elements are within ``reach * theta`` at the observed pose it is
@@ -71,6 +75,7 @@ class SegmentationCosts:
     jump: float = 25.0
     window: int = 10
     reach: float = 3.0
+    same: float = 6.0
 
 
 @dataclass(frozen=True)
