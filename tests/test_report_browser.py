@@ -103,6 +103,20 @@ def test_demo_report_in_chromium(browser: Any, demo_report: Path, artefacts: Pat
     if any(t["critical"] for t in task["transitions"]):
         assert any("CRITICAL" in t for t in texts)
 
+    # the distinct-state view of the graph (task.json "graph") shows every contact state once
+    from selenium.webdriver.support.ui import Select
+
+    Select(drv.find_element(By.ID, "graph-mode")).select_by_value("distinct")
+    time.sleep(0.5)
+    texts = drv.execute_script(
+        "return Array.from(document.querySelectorAll('#graph .annotation-text'))"
+        ".map(function (e) { var l = e.querySelector('tspan.line');"
+        " return (l || e).textContent; })"
+    )
+    distinct = {g["id"] for g in task["graph"]["states"]}
+    assert distinct <= {t.split(" ")[0] for t in texts}
+    Select(drv.find_element(By.ID, "graph-mode")).select_by_value("visits")
+
     # moving the slider (keyboard, as a user would) changes the state and its numbers
     state0 = drv.find_element(By.ID, "cur-state").text
     numbers0 = drv.find_element(By.ID, "cur-fig25").text

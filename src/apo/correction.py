@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -274,6 +274,102 @@ def _rotation_angles(R: FloatArray) -> FloatArray:
 # --------------------------------------------------------------------------------------------
 
 
+@dataclass
+class _Rows:
+    """Residual rows of a set of elements, gathered by form (see :class:`ContactConstraints`).
+
+    Point rows ``k . (R g + t) - d`` (``pg``, ``pk``, ``pd``), direction rows
+    ``(R u) . (q - t) - c`` (``du``, ``dq``, ``dc``), edge rows (``ea``, ``eu``: a point and
+    direction of G's edge; ``eb``, ``ee``: of E's; ``eref``: the sign reference), and the
+    element index of each row (``p_el``, ``d_el``, ``e_el``).
+    """
+
+    pg: list[FloatArray] = field(default_factory=list)
+    pk: list[FloatArray] = field(default_factory=list)
+    pd: list[float] = field(default_factory=list)
+    p_el: list[int] = field(default_factory=list)
+    du: list[FloatArray] = field(default_factory=list)
+    dq: list[FloatArray] = field(default_factory=list)
+    dc: list[float] = field(default_factory=list)
+    d_el: list[int] = field(default_factory=list)
+    ea: list[FloatArray] = field(default_factory=list)
+    eu: list[FloatArray] = field(default_factory=list)
+    eb: list[FloatArray] = field(default_factory=list)
+    ee: list[FloatArray] = field(default_factory=list)
+    eref: list[FloatArray] = field(default_factory=list)
+    e_el: list[int] = field(default_factory=list)
+
+
+def _feature(poly: Polyhedron, feat: tuple[str, int], want: str, i: int) -> int:
+    """Index of feature ``feat`` of ``poly``, checked to be a valid ``want`` (v, e or f)."""
+    kind, idx = feat
+    n = {"v": len(poly.vertices), "e": len(poly.edges), "f": len(poly.faces)}[want]
+    if kind != want or not 0 <= idx < n:
+        raise ValueError(f"element {i}: feature {feat!r} is not a valid {want!r} of {poly.name!r}")
+    return int(idx)
+
+
+def _add_point_rows(rows: _Rows, G: Polyhedron, E: Polyhedron, el: ContactElement, i: int) -> None:
+    """Add the point rows of a VF (1 row), VE (2) or VV (3) element ``i``."""
+    g = G.vertices[_feature(G, el.grasped, "v", i)]
+    if el.kind is ContactKind.VF:
+        f = _feature(E, el.environment, "f", i)
+        dirs, offsets = [E.face_normals[f]], [float(E.face_offsets[f])]
+    elif el.kind is ContactKind.VE:
+        e = _feature(E, el.environment, "e", i)
+        b0 = E.vertices[E.edges[e, 0]]
+        dirs = list(_perp_basis(E.edge_directions[e]))
+        offsets = [float(kj @ b0) for kj in dirs]
+    else:  # VV
+        q = E.vertices[_feature(E, el.environment, "v", i)]
+        dirs = list(np.eye(3))
+        offsets = [float(q[j]) for j in range(3)]
+    for kj, d in zip(dirs, offsets, strict=True):
+        rows.pg.append(g)
+        rows.pk.append(kj)
+        rows.pd.append(d)
+        rows.p_el.append(i)
+
+
+def _add_direction_rows(
+    rows: _Rows, G: Polyhedron, E: Polyhedron, el: ContactElement, i: int
+) -> None:
+    """Add the direction rows of an FV (1 row) or EV (2) element ``i``."""
+    if el.kind is ContactKind.FV:
+        f = _feature(G, el.grasped, "f", i)
+        dirs, offsets = [G.face_normals[f]], [float(G.face_offsets[f])]
+    else:  # EV
+        e = _feature(G, el.grasped, "e", i)
+        a0 = G.vertices[G.edges[e, 0]]
+        dirs = list(_perp_basis(G.edge_directions[e]))
+        offsets = [float(kj @ a0) for kj in dirs]
+    q = E.vertices[_feature(E, el.environment, "v", i)]
+    for u, c in zip(dirs, offsets, strict=True):
+        rows.du.append(u)
+        rows.dq.append(q)
+        rows.dc.append(c)
+        rows.d_el.append(i)
+
+
+def _add_edge_rows(rows: _Rows, G: Polyhedron, E: Polyhedron, el: ContactElement, i: int) -> None:
+    """Add the edge row of an EE element ``i``.
+
+    The edges' directions live in different frames (G's and E's), so whether they are
+    parallel depends on the pose: an EE element found with the edges a degree apart may have
+    exactly parallel model directions (a peg turned by noise about an axis-aligned slot). The
+    rows guard the common normal at evaluation time, pose by pose.
+    """
+    eg = _feature(G, el.grasped, "e", i)
+    ev = _feature(E, el.environment, "e", i)
+    rows.ea.append(G.vertices[G.edges[eg, 0]])
+    rows.eu.append(G.edge_directions[eg])
+    rows.eb.append(E.vertices[E.edges[ev, 0]])
+    rows.ee.append(E.edge_directions[ev])
+    ref = el.normals[0] if len(el.normals) else np.zeros(3)
+    rows.eref.append(np.asarray(ref, dtype=np.float64))
+    rows.e_el.append(i)
+
+
 class ContactConstraints:
     """The residuals ``f_i`` of one set of contact elements, compiled for many poses.
 
@@ -332,99 +428,27 @@ class ContactConstraints:
         self.environment = environment
         self.elements = tuple(elements)
         G, E = grasped, environment
-        pg: list[FloatArray] = []  # point rows: G point, E direction, offset
-        pk: list[FloatArray] = []
-        pd: list[float] = []
-        p_el: list[int] = []
-        du: list[FloatArray] = []  # direction rows: G direction, E point, offset
-        dq: list[FloatArray] = []
-        dc: list[float] = []
-        d_el: list[int] = []
-        ea: list[FloatArray] = []  # edge rows: G edge point, G edge dir, E point, E dir, ref
-        eu: list[FloatArray] = []
-        eb: list[FloatArray] = []
-        ee: list[FloatArray] = []
-        eref: list[FloatArray] = []
-        e_el: list[int] = []
-
-        def feature(poly: Polyhedron, feat: tuple[str, int], want: str, i: int) -> int:
-            kind, idx = feat
-            n = {"v": len(poly.vertices), "e": len(poly.edges), "f": len(poly.faces)}[want]
-            if kind != want or not 0 <= idx < n:
-                raise ValueError(
-                    f"element {i}: feature {feat!r} is not a valid {want!r} of {poly.name!r}"
-                )
-            return int(idx)
-
+        rows = _Rows()
         for i, el in enumerate(self.elements):
-            k = el.kind
-            if k is ContactKind.VF:
-                g = G.vertices[feature(G, el.grasped, "v", i)]
-                f = feature(E, el.environment, "f", i)
-                pg.append(g)
-                pk.append(E.face_normals[f])
-                pd.append(float(E.face_offsets[f]))
-                p_el.append(i)
-            elif k is ContactKind.VE:
-                g = G.vertices[feature(G, el.grasped, "v", i)]
-                e = feature(E, el.environment, "e", i)
-                b0 = E.vertices[E.edges[e, 0]]
-                for kj in _perp_basis(E.edge_directions[e]):
-                    pg.append(g)
-                    pk.append(kj)
-                    pd.append(float(kj @ b0))
-                    p_el.append(i)
-            elif k is ContactKind.VV:
-                g = G.vertices[feature(G, el.grasped, "v", i)]
-                q = E.vertices[feature(E, el.environment, "v", i)]
-                for j in range(3):
-                    unit = np.zeros(3)
-                    unit[j] = 1.0
-                    pg.append(g)
-                    pk.append(unit)
-                    pd.append(float(q[j]))
-                    p_el.append(i)
-            elif k is ContactKind.FV:
-                f = feature(G, el.grasped, "f", i)
-                q = E.vertices[feature(E, el.environment, "v", i)]
-                du.append(G.face_normals[f])
-                dq.append(q)
-                dc.append(float(G.face_offsets[f]))
-                d_el.append(i)
-            elif k is ContactKind.EV:
-                e = feature(G, el.grasped, "e", i)
-                q = E.vertices[feature(E, el.environment, "v", i)]
-                a0 = G.vertices[G.edges[e, 0]]
-                for kj in _perp_basis(G.edge_directions[e]):
-                    du.append(kj)
-                    dq.append(q)
-                    dc.append(float(kj @ a0))
-                    d_el.append(i)
-            else:  # EE
-                eg = feature(G, el.grasped, "e", i)
-                ev = feature(E, el.environment, "e", i)
-                # The edges' directions live in different frames (G's and E's), so whether
-                # they are parallel depends on the pose: an EE element found with the edges
-                # a degree apart may have exactly parallel model directions (a peg turned
-                # by noise about an axis-aligned slot). The rows guard the common normal at
-                # evaluation time, pose by pose.
-                u0, e0 = G.edge_directions[eg], E.edge_directions[ev]
-                ea.append(G.vertices[G.edges[eg, 0]])
-                eu.append(u0)
-                eb.append(E.vertices[E.edges[ev, 0]])
-                ee.append(e0)
-                ref = el.normals[0] if len(el.normals) else np.zeros(3)
-                eref.append(np.asarray(ref, dtype=np.float64))
-                e_el.append(i)
+            if el.kind in (ContactKind.VF, ContactKind.VE, ContactKind.VV):
+                _add_point_rows(rows, G, E, el, i)
+            elif el.kind in (ContactKind.FV, ContactKind.EV):
+                _add_direction_rows(rows, G, E, el, i)
+            else:
+                _add_edge_rows(rows, G, E, el, i)
 
-        def arr(rows: list[FloatArray]) -> FloatArray:
-            return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+        def arr(r: list[FloatArray]) -> FloatArray:
+            return np.asarray(r, dtype=np.float64).reshape(-1, 3)
 
-        self._pg, self._pk, self._pd = arr(pg), arr(pk), np.asarray(pd, dtype=np.float64)
-        self._du, self._dq, self._dc = arr(du), arr(dq), np.asarray(dc, dtype=np.float64)
-        self._ea, self._eu, self._eb = arr(ea), arr(eu), arr(eb)
-        self._ee, self._eref = arr(ee), arr(eref)
-        self.element_of_row: IntArray = np.asarray(p_el + d_el + e_el, dtype=np.int64)
+        self._pg, self._pk = arr(rows.pg), arr(rows.pk)
+        self._pd = np.asarray(rows.pd, dtype=np.float64)
+        self._du, self._dq = arr(rows.du), arr(rows.dq)
+        self._dc = np.asarray(rows.dc, dtype=np.float64)
+        self._ea, self._eu, self._eb = arr(rows.ea), arr(rows.eu), arr(rows.eb)
+        self._ee, self._eref = arr(rows.ee), arr(rows.eref)
+        self.element_of_row: IntArray = np.asarray(
+            rows.p_el + rows.d_el + rows.e_el, dtype=np.int64
+        )
         self.n_rows = len(self.element_of_row)
         # Per-element distance = norm of its rows: a (K, n_el) 0/1 grouping.
         n_el = len(self.elements)

@@ -300,67 +300,8 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
     if task.units not in UNITS:
         raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
     k = 1.0 / UNITS[task.units]
-    states: list[dict[str, Any]] = []
-    for s in task.states:
-        p, q = position_quaternion_from_pose(s.X_EG)
-        states.append(
-            {
-                "id": s.id,
-                "frames": [int(s.frames[0]), int(s.frames[1])],
-                "times": [_r(s.times[0]), _r(s.times[1])],
-                "singular": bool(s.singular),
-                "fig25": [int(v) for v in s.fig25],
-                "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
-                "elements": [
-                    {
-                        "kind": e.kind,
-                        "grasped": [e.grasped[0], int(e.grasped[1])],
-                        "environment": [e.environment[0], int(e.environment[1])],
-                        "point": _vec(e.point, k),
-                        "normals": [_vec(n) for n in np.asarray(e.normals).reshape(-1, 3)],
-                    }
-                    for e in s.elements
-                ],
-                "pose": {"position": _vec(p, k), "quaternion": _vec(q)},
-                "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
-                "pose_converged": bool(s.pose_converged),
-                "same_as": s.same_as,
-            }
-        )
-    transitions = [
-        {
-            "from": t.from_id,
-            "to": t.to_id,
-            "frame": int(t.frame),
-            "dof_transitions": {
-                sp: [[a, b] for a, b in t.dof_transitions.get(sp, ())] for sp in SPACES
-            },
-            "subskills": [
-                {
-                    "kind": u.kind,
-                    "space": u.space,
-                    "type": u.type,
-                    "direction": _vec(np.zeros(3) if u.direction is None else u.direction),
-                    "point": None if u.point is None else _vec(u.point, k),
-                    "source": u.source,
-                    "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
-                }
-                for u in t.subskills
-            ],
-            "critical": bool(t.critical),
-            "direct": bool(t.direct),
-            "decomposition": {
-                sp: {
-                    "choice": t.choice.get(sp, "unique"),
-                    "alternatives": [
-                        [[a, b] for a, b in alt] for alt in t.alternatives.get(sp, ())
-                    ],
-                }
-                for sp in SPACES
-            },
-        }
-        for t in task.transitions
-    ]
+    states = [_state_to_dict(st, k) for st in task.states]
+    transitions = [_transition_to_dict(t, k) for t in task.transitions]
     rejected = [
         {
             "frames": [int(r.frames[0]), int(r.frames[1])],
@@ -386,6 +327,66 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
         "rejected": rejected,
         "graph": graph_to_dict(state_graph(task)),
         **({"extra": dict(task.extra)} if task.extra else {}),
+    }
+
+
+def _state_to_dict(s: State, k: float) -> dict[str, Any]:
+    """JSON form of a state, lengths times ``k`` (metres to the task's units)."""
+    p, q = position_quaternion_from_pose(s.X_EG)
+    return {
+        "id": s.id,
+        "frames": [int(s.frames[0]), int(s.frames[1])],
+        "times": [_r(s.times[0]), _r(s.times[1])],
+        "singular": bool(s.singular),
+        "fig25": [int(v) for v in s.fig25],
+        "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
+        "elements": [
+            {
+                "kind": str(e.kind),
+                "grasped": [e.grasped[0], int(e.grasped[1])],
+                "environment": [e.environment[0], int(e.environment[1])],
+                "point": _vec(e.point, k),
+                "normals": [_vec(n) for n in np.asarray(e.normals).reshape(-1, 3)],
+            }
+            for e in s.elements
+        ],
+        "pose": {"position": _vec(p, k), "quaternion": _vec(q)},
+        "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
+        "pose_converged": bool(s.pose_converged),
+        "same_as": s.same_as,
+    }
+
+
+def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
+    """JSON form of a transition, lengths times ``k`` (metres to the task's units)."""
+    return {
+        "from": t.from_id,
+        "to": t.to_id,
+        "frame": int(t.frame),
+        "dof_transitions": {
+            sp: [[a, b] for a, b in t.dof_transitions.get(sp, ())] for sp in SPACES
+        },
+        "subskills": [
+            {
+                "kind": str(u.kind),
+                "space": u.space,
+                "type": u.type,
+                "direction": _vec(np.zeros(3) if u.direction is None else u.direction),
+                "point": None if u.point is None else _vec(u.point, k),
+                "source": u.source,
+                "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
+            }
+            for u in t.subskills
+        ],
+        "critical": bool(t.critical),
+        "direct": bool(t.direct),
+        "decomposition": {
+            sp: {
+                "choice": t.choice.get(sp, "unique"),
+                "alternatives": [[[a, b] for a, b in alt] for alt in t.alternatives.get(sp, ())],
+            }
+            for sp in SPACES
+        },
     }
 
 
@@ -493,89 +494,12 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
         _model_from_dict(rd, rd.get(models, r, "models"), f"models.{r}")
         for r in ("grasped", "environment")
     ]
-
     states: list[State] = []
     ids: set[str] = set()
-    prev_last = -1
     for i, sd_ in enumerate(rd.lst(rd.get(d, "states", "top level"), "states")):
-        w = f"states[{i}]"
-        sd = rd.obj(sd_, w)
-        sid = rd.string(rd.get(sd, "id", w), f"{w}.id")
-        if not sid or sid in ids:
-            raise rd.fail(f"{w}.id", f"empty or duplicate state id {sid!r}")
-        ids.add(sid)
-        fr = rd.lst(rd.get(sd, "frames", w), f"{w}.frames", 2)
-        f0, f1 = rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")
-        if not 0 <= f0 <= f1 or f0 <= prev_last:
-            raise rd.fail(f"{w}.frames", f"frames [{f0}, {f1}] out of order")
-        prev_last = f1
-        tv = rd.vector(sd.get("times", [0.0, 0.0]), f"{w}.times", 2)
-        fig = rd.lst(rd.get(sd, "fig25", w), f"{w}.fig25", 8)
-        fig25 = tuple(rd.integer(x, f"{w}.fig25[{j}]") for j, x in enumerate(fig))
-        if any(not 0 <= v <= 3 for v in fig25):
-            raise rd.fail(f"{w}.fig25", f"entries must be in 0..3, got {list(fig25)}")
-        six_d = rd.obj(sd.get("six", {}), f"{w}.six")
-        six: dict[str, tuple[int, int, int, int, int, int]] = {}
-        for sp in SPACES:
-            if sp in six_d:
-                vals = rd.lst(six_d[sp], f"{w}.six.{sp}", 6)
-                tup = tuple(rd.integer(x, f"{w}.six.{sp}[{j}]") for j, x in enumerate(vals))
-                if sum(tup) != 3 or min(tup) < 0:
-                    raise rd.fail(
-                        f"{w}.six.{sp}",
-                        f"must be 6 non-negative ints summing to 3, got {list(tup)}",
-                    )
-                six[sp] = cast("tuple[int, int, int, int, int, int]", tup)
-        elements: list[Element] = []
-        for j, ed_ in enumerate(rd.lst(rd.get(sd, "elements", w), f"{w}.elements")):
-            we = f"{w}.elements[{j}]"
-            ed = rd.obj(ed_, we)
-            normals_l = rd.lst(rd.get(ed, "normals", we), f"{we}.normals")
-            if not normals_l:
-                raise rd.fail(f"{we}.normals", "expected at least one normal")
-            normals = np.array(
-                [rd.vector(n, f"{we}.normals[{m}]", 3) for m, n in enumerate(normals_l)]
-            )
-            if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > 1e-4):
-                raise rd.fail(f"{we}.normals", "normals must be unit vectors")
-            elements.append(
-                Element(
-                    kind=rd.string(rd.get(ed, "kind", we), f"{we}.kind", KINDS),
-                    grasped=rd.feature(ed.get("grasped", ["v", 0]), f"{we}.grasped"),
-                    environment=rd.feature(ed.get("environment", ["v", 0]), f"{we}.environment"),
-                    point=rd.vector(rd.get(ed, "point", we), f"{we}.point", 3) * k,
-                    normals=normals,
-                )
-            )
-        singular = rd.boolean(rd.get(sd, "singular", w), f"{w}.singular")
-        if singular != any(e.singular for e in elements):
-            raise rd.fail(f"{w}.singular", f"{singular} disagrees with the elements' normals")
-        pd = rd.obj(rd.get(sd, "pose", w), f"{w}.pose")
-        pos = rd.vector(rd.get(pd, "position", f"{w}.pose"), f"{w}.pose.position", 3) * k
-        quat = rd.vector(rd.get(pd, "quaternion", f"{w}.pose"), f"{w}.pose.quaternion", 4)
-        if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-6:
-            raise rd.fail(f"{w}.pose.quaternion", f"not a unit quaternion: {quat.tolist()}")
-        pf = sd.get("pose_frame")
-        same_as = sd.get("same_as")
-        if same_as is not None and rd.string(same_as, f"{w}.same_as") not in ids:
-            raise rd.fail(f"{w}.same_as", f"unknown earlier state {same_as!r}")
-        states.append(
-            State(
-                id=sid,
-                frames=(f0, f1),
-                times=(float(tv[0]), float(tv[1])),
-                singular=singular,
-                fig25=cast("tuple[int, int, int, int, int, int, int, int]", fig25),
-                six=six,
-                elements=tuple(elements),
-                X_EG=pose_from_position_quaternion(pos, quat),
-                pose_frame=None if pf is None else rd.integer(pf, f"{w}.pose_frame"),
-                pose_converged=rd.boolean(sd.get("pose_converged", True), f"{w}.pose_converged"),
-                same_as=same_as,
-            )
-        )
-
-    transitions: list[Transition] = []
+        prev_last = states[-1].frames[1] if states else -1
+        states.append(_read_state(rd, sd_, f"states[{i}]", k, ids, prev_last))
+        ids.add(states[-1].id)
     tl = rd.lst(rd.get(d, "transitions", "top level"), "transitions")
     if len(tl) != max(len(states) - 1, 0):
         raise rd.fail(
@@ -583,91 +507,14 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
             f"expected {max(len(states) - 1, 0)} (one between each pair of consecutive "
             f"states), got {len(tl)}",
         )
-    for i, td_ in enumerate(tl):
-        w = f"transitions[{i}]"
-        td = rd.obj(td_, w)
-        a = rd.string(rd.get(td, "from", w), f"{w}.from")
-        b = rd.string(rd.get(td, "to", w), f"{w}.to")
-        if (a, b) != (states[i].id, states[i + 1].id):
-            raise rd.fail(w, f"expected {states[i].id} -> {states[i + 1].id}, got {a} -> {b}")
-        dd = rd.obj(rd.get(td, "dof_transitions", w), f"{w}.dof_transitions")
-        dof_t = {sp: _read_pairs(rd, dd.get(sp, []), f"{w}.dof_transitions.{sp}") for sp in SPACES}
-        choice: dict[str, str] = {}
-        alternatives: dict[str, tuple[tuple[tuple[str, str], ...], ...]] = {}
-        dec = rd.obj(td.get("decomposition", {}), f"{w}.decomposition")
-        for sp in SPACES:
-            if sp not in dec:
-                continue
-            ws = f"{w}.decomposition.{sp}"
-            ds = rd.obj(dec[sp], ws)
-            choice[sp] = rd.string(ds.get("choice", "unique"), f"{ws}.choice")
-            alternatives[sp] = tuple(
-                _read_pairs(rd, alt, f"{ws}.alternatives[{j}]")
-                for j, alt in enumerate(rd.lst(ds.get("alternatives", []), f"{ws}.alternatives"))
-            )
-        subs: list[SubSkill] = []
-        for j, ud_ in enumerate(rd.lst(rd.get(td, "subskills", w), f"{w}.subskills")):
-            wu = f"{w}.subskills[{j}]"
-            ud = rd.obj(ud_, wu)
-            typ = ud.get("type")
-            subs.append(
-                SubSkill(
-                    kind=SubSkillKind(
-                        rd.string(rd.get(ud, "kind", wu), f"{wu}.kind", SUBSKILL_KINDS)
-                    ),
-                    space=rd.string(rd.get(ud, "space", wu), f"{wu}.space", SPACES),
-                    type=None if typ is None else rd.string(typ, f"{wu}.type", ("I", "II")),
-                    direction=rd.vector(ud.get("direction", [0, 0, 0]), f"{wu}.direction", 3),
-                    point=(
-                        None
-                        if ud.get("point") is None
-                        else rd.vector(ud["point"], f"{wu}.point", 3) * k
-                    ),
-                    source=rd.string(ud.get("source", "none"), f"{wu}.source"),
-                    subspace=np.array(
-                        [
-                            rd.vector(row, f"{wu}.subspace[{r}]", 3)
-                            for r, row in enumerate(
-                                rd.lst(ud.get("subspace", []), f"{wu}.subspace")
-                            )
-                        ],
-                        dtype=np.float64,
-                    ).reshape(-1, 3),
-                )
-            )
-        transitions.append(
-            Transition(
-                from_id=a,
-                to_id=b,
-                frame=rd.integer(td.get("frame", states[i + 1].frames[0]), f"{w}.frame"),
-                dof_transitions=dof_t,
-                subskills=tuple(subs),
-                critical=rd.boolean(rd.get(td, "critical", w), f"{w}.critical"),
-                choice=choice,
-                alternatives=alternatives,
-                direct=rd.boolean(td.get("direct", True), f"{w}.direct"),
-            )
-        )
-
-    rejected: list[Rejected] = []
-    for i, rj_ in enumerate(rd.lst(d.get("rejected", []), "rejected")):
-        w = f"rejected[{i}]"
-        rj = rd.obj(rj_, w)
-        fr = rd.lst(rd.get(rj, "frames", w), f"{w}.frames", 2)
-        rejected.append(
-            Rejected(
-                frames=(rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")),
-                elements=tuple(
-                    rd.string(x, f"{w}.elements")
-                    for x in rd.lst(rj.get("elements", []), f"{w}.elements")
-                ),
-                replaced_by=tuple(
-                    rd.string(x, f"{w}.replaced_by", tuple(ids))
-                    for x in rd.lst(rj.get("replaced_by", []), f"{w}.replaced_by")
-                ),
-                reason=rd.string(rj.get("reason", ""), f"{w}.reason"),
-            )
-        )
+    transitions = [
+        _read_transition(rd, td_, f"transitions[{i}]", k, states[i], states[i + 1])
+        for i, td_ in enumerate(tl)
+    ]
+    rejected = [
+        _read_rejected(rd, rj_, f"rejected[{i}]", ids)
+        for i, rj_ in enumerate(rd.lst(d.get("rejected", []), "rejected"))
+    ]
     n_frames = rd.integer(d.get("n_frames", states[-1].frames[1] + 1 if states else 0), "n_frames")
     if states and states[-1].frames[1] >= n_frames:
         raise rd.fail(
@@ -690,6 +537,165 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
     if "graph" in d:
         check_graph(task, d["graph"], source=source)
     return task
+
+
+def _read_state(rd: _Reader, sd_: Any, w: str, k: float, ids: set[str], prev_last: int) -> State:
+    """Read one state ``w`` (lengths times ``k`` to metres); ``ids`` are the earlier ones."""
+    sd = rd.obj(sd_, w)
+    sid = rd.string(rd.get(sd, "id", w), f"{w}.id")
+    if not sid or sid in ids:
+        raise rd.fail(f"{w}.id", f"empty or duplicate state id {sid!r}")
+    fr = rd.lst(rd.get(sd, "frames", w), f"{w}.frames", 2)
+    f0, f1 = rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")
+    if not 0 <= f0 <= f1 or f0 <= prev_last:
+        raise rd.fail(f"{w}.frames", f"frames [{f0}, {f1}] out of order")
+    tv = rd.vector(sd.get("times", [0.0, 0.0]), f"{w}.times", 2)
+    fig = rd.lst(rd.get(sd, "fig25", w), f"{w}.fig25", 8)
+    fig25 = tuple(rd.integer(x, f"{w}.fig25[{j}]") for j, x in enumerate(fig))
+    if any(not 0 <= v <= 3 for v in fig25):
+        raise rd.fail(f"{w}.fig25", f"entries must be in 0..3, got {list(fig25)}")
+    six = _read_six(rd, sd.get("six", {}), f"{w}.six")
+    elements = [
+        _read_element(rd, ed_, f"{w}.elements[{j}]", k)
+        for j, ed_ in enumerate(rd.lst(rd.get(sd, "elements", w), f"{w}.elements"))
+    ]
+    singular = rd.boolean(rd.get(sd, "singular", w), f"{w}.singular")
+    if singular != any(e.singular for e in elements):
+        raise rd.fail(f"{w}.singular", f"{singular} disagrees with the elements' normals")
+    pd = rd.obj(rd.get(sd, "pose", w), f"{w}.pose")
+    pos = rd.vector(rd.get(pd, "position", f"{w}.pose"), f"{w}.pose.position", 3) * k
+    quat = rd.vector(rd.get(pd, "quaternion", f"{w}.pose"), f"{w}.pose.quaternion", 4)
+    if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-6:
+        raise rd.fail(f"{w}.pose.quaternion", f"not a unit quaternion: {quat.tolist()}")
+    pf = sd.get("pose_frame")
+    same_as = sd.get("same_as")
+    if same_as is not None and rd.string(same_as, f"{w}.same_as") not in ids | {sid}:
+        raise rd.fail(f"{w}.same_as", f"unknown earlier state {same_as!r}")
+    return State(
+        id=sid,
+        frames=(f0, f1),
+        times=(float(tv[0]), float(tv[1])),
+        singular=singular,
+        fig25=cast("tuple[int, int, int, int, int, int, int, int]", fig25),
+        six=six,
+        elements=tuple(elements),
+        X_EG=pose_from_position_quaternion(pos, quat),
+        pose_frame=None if pf is None else rd.integer(pf, f"{w}.pose_frame"),
+        pose_converged=rd.boolean(sd.get("pose_converged", True), f"{w}.pose_converged"),
+        same_as=same_as,
+    )
+
+
+def _read_six(rd: _Reader, v: Any, w: str) -> dict[str, tuple[int, int, int, int, int, int]]:
+    """Read a state's ``six`` numbers per space (6 non-negative ints summing to 3)."""
+    six_d = rd.obj(v, w)
+    six: dict[str, tuple[int, int, int, int, int, int]] = {}
+    for sp in SPACES:
+        if sp in six_d:
+            vals = rd.lst(six_d[sp], f"{w}.{sp}", 6)
+            tup = tuple(rd.integer(x, f"{w}.{sp}[{j}]") for j, x in enumerate(vals))
+            if sum(tup) != 3 or min(tup) < 0:
+                raise rd.fail(
+                    f"{w}.{sp}",
+                    f"must be 6 non-negative ints summing to 3, got {list(tup)}",
+                )
+            six[sp] = cast("tuple[int, int, int, int, int, int]", tup)
+    return six
+
+
+def _read_element(rd: _Reader, ed_: Any, we: str, k: float) -> Element:
+    """Read one contact element ``we`` (point times ``k`` to metres, unit normals)."""
+    ed = rd.obj(ed_, we)
+    normals_l = rd.lst(rd.get(ed, "normals", we), f"{we}.normals")
+    if not normals_l:
+        raise rd.fail(f"{we}.normals", "expected at least one normal")
+    normals = np.array([rd.vector(n, f"{we}.normals[{m}]", 3) for m, n in enumerate(normals_l)])
+    if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > 1e-4):
+        raise rd.fail(f"{we}.normals", "normals must be unit vectors")
+    return Element(
+        kind=rd.string(rd.get(ed, "kind", we), f"{we}.kind", KINDS),
+        grasped=rd.feature(ed.get("grasped", ["v", 0]), f"{we}.grasped"),
+        environment=rd.feature(ed.get("environment", ["v", 0]), f"{we}.environment"),
+        point=rd.vector(rd.get(ed, "point", we), f"{we}.point", 3) * k,
+        normals=normals,
+    )
+
+
+def _read_transition(
+    rd: _Reader, td_: Any, w: str, k: float, before: State, after: State
+) -> Transition:
+    """Read the transition ``w`` between the consecutive states ``before`` and ``after``."""
+    td = rd.obj(td_, w)
+    a = rd.string(rd.get(td, "from", w), f"{w}.from")
+    b = rd.string(rd.get(td, "to", w), f"{w}.to")
+    if (a, b) != (before.id, after.id):
+        raise rd.fail(w, f"expected {before.id} -> {after.id}, got {a} -> {b}")
+    dd = rd.obj(rd.get(td, "dof_transitions", w), f"{w}.dof_transitions")
+    dof_t = {sp: _read_pairs(rd, dd.get(sp, []), f"{w}.dof_transitions.{sp}") for sp in SPACES}
+    choice: dict[str, str] = {}
+    alternatives: dict[str, tuple[tuple[tuple[str, str], ...], ...]] = {}
+    dec = rd.obj(td.get("decomposition", {}), f"{w}.decomposition")
+    for sp in SPACES:
+        if sp not in dec:
+            continue
+        ws = f"{w}.decomposition.{sp}"
+        ds = rd.obj(dec[sp], ws)
+        choice[sp] = rd.string(ds.get("choice", "unique"), f"{ws}.choice")
+        alternatives[sp] = tuple(
+            _read_pairs(rd, alt, f"{ws}.alternatives[{j}]")
+            for j, alt in enumerate(rd.lst(ds.get("alternatives", []), f"{ws}.alternatives"))
+        )
+    subs = [
+        _read_subskill(rd, ud_, f"{w}.subskills[{j}]", k)
+        for j, ud_ in enumerate(rd.lst(rd.get(td, "subskills", w), f"{w}.subskills"))
+    ]
+    return Transition(
+        from_id=a,
+        to_id=b,
+        frame=rd.integer(td.get("frame", after.frames[0]), f"{w}.frame"),
+        dof_transitions=dof_t,
+        subskills=tuple(subs),
+        critical=rd.boolean(rd.get(td, "critical", w), f"{w}.critical"),
+        choice=choice,
+        alternatives=alternatives,
+        direct=rd.boolean(td.get("direct", True), f"{w}.direct"),
+    )
+
+
+def _read_subskill(rd: _Reader, ud_: Any, wu: str, k: float) -> SubSkill:
+    """Read one sub-skill ``wu`` (its axis point times ``k`` to metres)."""
+    ud = rd.obj(ud_, wu)
+    typ = ud.get("type")
+    rows = rd.lst(ud.get("subspace", []), f"{wu}.subspace")
+    return SubSkill(
+        kind=SubSkillKind(rd.string(rd.get(ud, "kind", wu), f"{wu}.kind", SUBSKILL_KINDS)),
+        space=rd.string(rd.get(ud, "space", wu), f"{wu}.space", SPACES),
+        type=None if typ is None else rd.string(typ, f"{wu}.type", ("I", "II")),
+        direction=rd.vector(ud.get("direction", [0, 0, 0]), f"{wu}.direction", 3),
+        point=(None if ud.get("point") is None else rd.vector(ud["point"], f"{wu}.point", 3) * k),
+        source=rd.string(ud.get("source", "none"), f"{wu}.source"),
+        subspace=np.array(
+            [rd.vector(row, f"{wu}.subspace[{r}]", 3) for r, row in enumerate(rows)],
+            dtype=np.float64,
+        ).reshape(-1, 3),
+    )
+
+
+def _read_rejected(rd: _Reader, rj_: Any, w: str, ids: set[str]) -> Rejected:
+    """Read one rejected run ``w``; ``ids`` are the task's state ids."""
+    rj = rd.obj(rj_, w)
+    fr = rd.lst(rd.get(rj, "frames", w), f"{w}.frames", 2)
+    return Rejected(
+        frames=(rd.integer(fr[0], f"{w}.frames[0]"), rd.integer(fr[1], f"{w}.frames[1]")),
+        elements=tuple(
+            rd.string(x, f"{w}.elements") for x in rd.lst(rj.get("elements", []), f"{w}.elements")
+        ),
+        replaced_by=tuple(
+            rd.string(x, f"{w}.replaced_by", tuple(ids))
+            for x in rd.lst(rj.get("replaced_by", []), f"{w}.replaced_by")
+        ),
+        reason=rd.string(rj.get("reason", ""), f"{w}.reason"),
+    )
 
 
 def _read_pairs(rd: _Reader, v: Any, where: str) -> tuple[tuple[str, str], ...]:

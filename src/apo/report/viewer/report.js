@@ -500,6 +500,81 @@
     return { data: data, layout: layout, height: height };
   }
 
+  // the distinct-state graph (task.json "graph"): each contact state once, transitions counted
+  function boxExit(c, d, W, H) {  // point where the ray from box centre c along d leaves it
+    var sx = Math.abs(d[0]) > 1e-12 ? (W / 2) / Math.abs(d[0]) : Infinity;
+    var sy = Math.abs(d[1]) > 1e-12 ? (H / 2) / Math.abs(d[1]) : Infinity;
+    var k = Math.min(sx, sy);
+    return [c[0] + k * d[0], c[1] + k * d[1]];
+  }
+  function distinctGraphFigure() {
+    var Gr = T.graph;
+    var m = Gr.states.length;
+    var cols = Math.min(m, 5);
+    var W = GW, H = GH, DX = 3.3, DY = 2.4;
+    var shapes = [], ann = [];
+    var hx = [], hy = [], htext = [], hidx = [];
+    var nodeOf = {}, pos = [];
+    Gr.states.forEach(function (g, i) {
+      var r = Math.floor(i / cols), c = i % cols;
+      if (r % 2 === 1) { c = cols - 1 - c; }
+      var x = c * DX, y = -r * DY;
+      pos.push([x, y]);
+      g.states.forEach(function (sid) { nodeOf[sid] = i; });
+      var k = stateIndex[g.id], s = states[k];
+      shapes.push({ type: 'rect', x0: x - W / 2, x1: x + W / 2, y0: y - H / 2, y1: y + H / 2,
+                    fillcolor: stateColor[k], layer: 'below',
+                    line: { color: '#222', width: 1, dash: s.singular ? 'dot' : 'solid' } });
+      ann.push({ x: x, y: y, showarrow: false, font: { size: 11, color: '#fff' }, align: 'center',
+                 text: '<b>' + g.id + '</b>' + (g.states.length > 1 ? ' \u00d7' + g.states.length : '') +
+                       (s.singular ? ' (singular)' : '') + '<br>' + eightText(s) });
+      hx.push(x); hy.push(y); hidx.push(k);
+      htext.push('contact state ' + g.id + '<br>visits: ' + g.states.map(function (sid, j) {
+        return sid + ' (frames ' + g.visits[j][0] + '–' + g.visits[j][1] + ')';
+      }).join(', '));
+    });
+    var pairs = {};
+    Gr.transitions.forEach(function (t) { pairs[t.from + '>' + t.to] = true; });
+    Gr.transitions.forEach(function (t, k) {
+      var a = pos[nodeOf[t.from]], b = pos[nodeOf[t.to]];
+      var d = [b[0] - a[0], b[1] - a[1]], L = Math.hypot(d[0], d[1]) || 1;
+      d = [d[0] / L, d[1] / L];
+      var off = pairs[t.to + '>' + t.from] ? 0.16 : 0;  // a pair both ways: two parallel arrows
+      var o = [-d[1] * off, d[0] * off];
+      var p0 = boxExit(a, d, W, H), p1 = boxExit(b, [-d[0], -d[1]], W, H);
+      p0 = [p0[0] + o[0], p0[1] + o[1]]; p1 = [p1[0] + o[0], p1[1] + o[1]];
+      var col = t.critical ? '#c62828' : (t.direct ? '#333' : '#ef6c00');
+      ann.push({ x: p1[0], y: p1[1], ax: p0[0], ay: p0[1], xref: 'x', yref: 'y', axref: 'x', ayref: 'y',
+                 text: '', showarrow: true, arrowhead: 2, arrowsize: 1.2,
+                 arrowwidth: t.critical ? 3 : 1.5, arrowcolor: col });
+      var first = null;
+      T.transitions.forEach(function (u) { if (first === null && u.frame === t.frames[0]) { first = u; } });
+      var lines = first ? first.subskills.map(function (u) { return subskillText(u); }) : [];
+      if (!lines.length) { lines = ['(no sub-skill)']; }
+      if (t.critical) { lines.unshift('<b>CRITICAL</b>'); }
+      if (!t.direct) { lines.unshift('<b>not direct</b>'); }
+      var mx = 0.5 * (p0[0] + p1[0]) + 2.2 * o[0], my = 0.5 * (p0[1] + p1[1]) + 2.2 * o[1];
+      ann.push({ x: mx, y: my, showarrow: false, font: { size: 10, color: col },
+                 bgcolor: 'rgba(255,255,255,0.75)',
+                 text: '(' + (k + 1) + ')' + (t.count > 1 ? ' \u00d7' + t.count : '') + ' ' + lines.join('<br>') });
+    });
+    graphNodes = states.map(function (s) { return pos[nodeOf[s.id]]; });
+    shapes.push({ type: 'rect', x0: -W / 2 - 0.08, x1: W / 2 + 0.08, y0: -H / 2 - 0.08, y1: H / 2 + 0.08,
+                  line: { color: '#000', width: 3 }, fillcolor: 'rgba(0,0,0,0)', name: 'current' });
+    var rows = Math.ceil(m / cols);
+    var data = [{ type: 'scatter', mode: 'markers', x: hx, y: hy, text: htext, customdata: hidx,
+                  hoverinfo: 'text', marker: { size: 40, opacity: 0 }, showlegend: false }];
+    var layout = {
+      margin: { l: 10, r: 10, t: 10, b: 10 }, showlegend: false, hovermode: 'closest',
+      xaxis: { visible: false, range: [-W, (cols - 1) * DX + W] },
+      yaxis: { visible: false, range: [-(rows - 1) * DY - H, H], scaleanchor: 'x', scaleratio: 1 },
+      shapes: shapes, annotations: ann, dragmode: 'pan'
+    };
+    return { data: data, layout: layout, height: Math.max(260, 130 + rows * 160) };
+  }
+  var graphMode = T.graph && T.graph.states.length < states.length ? 'distinct' : 'visits';
+  function currentGraphFigure() { return graphMode === 'distinct' ? distinctGraphFigure() : graphFigure(); }
+
   // ------------------------------------------------------------------ tables and panels
   function table(head, rows, opts) {
     var h = '<table class="data"><thead><tr>' + head.map(function (c) { return '<th>' + c + '</th>'; }).join('') +
@@ -769,8 +844,18 @@
     fillInputs();
     var tl = timelineFigure();
     timelineCursor = tl.layout.shapes.length - 1;
-    var gr = graphFigure();
+    var gr = currentGraphFigure();
     graphCursor = gr.layout.shapes.length - 1;
+    var modeSel = document.getElementById('graph-mode');
+    if (!T.graph) { modeSel.hidden = true; }
+    modeSel.value = graphMode;
+    modeSel.addEventListener('change', function () {
+      graphMode = modeSel.value;
+      var g2 = currentGraphFigure();
+      graphCursor = g2.layout.shapes.length - 1;
+      graph.style.height = g2.height + 'px';
+      Plotly.react(graph, g2.data, g2.layout, PLOT_CONFIG).then(function () { update(); });
+    });
     graph.style.height = gr.height + 'px';
     var jobs = [
       Plotly.newPlot(view3d, sceneTraces(), sceneLayout, PLOT_CONFIG),
@@ -786,7 +871,11 @@
         var pt = ev.points && ev.points[0];
         if (pt && pt.customdata >= 0) { seekState(pt.customdata); }
       });
-      return seek(0);
+      // the plots were drawn at frame 0: fill the panels without drawing the 3D view again
+      fillNow();
+      highlightState(tracks[0].state(0));
+      document.body.dataset.state = states[tracks[0].state(0)].id;
+      document.body.dataset.frame = String(frame[0]);
     }).then(function () {
       window.apoReady = performance.now();
       document.body.dataset.ready = '1';
