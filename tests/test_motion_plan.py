@@ -206,13 +206,16 @@ def test_direction_against_the_demonstration_is_reversed() -> None:
 
 @pytest.mark.parametrize("name", DEMOS)
 def test_approach_crosses_over_above_start_and_standoff(name: str) -> None:
-    program = plan(_task(name))
+    check_approach(plan(_task(name)))
+
+
+def check_approach(program: SkillProgram) -> None:
+    """Rise (or stay), cross at the top level, then come straight down to the stand-off."""
     approach, first = program.primitives[0], program.primitives[1]
     up = -first.direction
     legs = [program.start_X_EG, *approach.via, approach.target.X_EG]
     levels = [float(up @ X[:3, 3]) for X in legs]
     top = max(levels)
-    # rise (or stay), cross at the top level, then come straight down to the stand-off
     assert all(lv == pytest.approx(top) for lv in levels[1:-1])
     assert top >= levels[0] - 1e-12 and top >= levels[-1] - 1e-12
     if approach.via:
@@ -403,25 +406,17 @@ def test_trailing_transition_without_subskill_is_folded_into_the_last_primitive(
 # Randomised variants, noisy observations
 # --------------------------------------------------------------------------------------------
 
-VARIANTS = {
-    "peg_in_hole_2d": ("tilt_deg", 12.0, 27.0),
-    "square_peg_in_hole": ("yaw_deg", 5.0, 30.0),
-    "block_on_table_to_corner": ("yaw_deg", 8.0, 35.0),
-    "block_tipping": ("tilt_deg", 15.0, 45.0),
-}
-
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("name", DEMOS)
 def test_randomised_noisy_variants_plan_their_subskills(name: str, seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    param, lo, hi = VARIANTS[name]
-    builder = getattr(synthetic, name)
-    demo = builder(**{param: float(rng.uniform(lo, hi))})
+    # frame count, rate, approach angle, margin and a random placement of the whole scene
+    demo = synthetic.random_variant(seed, name=name)
     demo = synthetic.add_noise(demo, sigma_mm=0.3, sigma_deg=0.3, seed=seed)
     task = recognize(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm")
     program = plan(task)
     check_program_structure(task, program)
+    check_approach(program)
     for p in program.primitives:
         if p.alignment is not None:
             check_alignment(task, p)

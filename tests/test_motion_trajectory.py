@@ -236,3 +236,39 @@ def test_apo_plan_as_a_process_on_the_real_data(real_data_dir: Path, tmp_path: P
     d = json.loads(res.stdout)
     kinds = [p["kind"] for p in d["primitives"]]
     assert kinds[0] == "approach" and kinds.count("align") == 1
+
+
+@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("name", DEMOS)
+def test_approach_path_stays_clear_of_the_environment(name: str, seed: int) -> None:
+    from apo.contact import ContactFinder
+
+    demo = synthetic.random_variant(seed, name=name)
+    task = recognize(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm")
+    pp = PlanParameters(standoff=0.005, sample_period=0.05)
+    program = plan(task, parameters=pp)
+    tr = trajectory(program)
+    finder = ContactFinder(demo.grasped, demo.environment, threshold=0.5 * pp.standoff)
+    states = finder.find_batch(tr.X_EG[tr.primitive == 0])
+    touching = [k for k, s in enumerate(states) if s.elements]
+    assert not touching, f"approach samples within {0.5 * pp.standoff} m of E: {touching}"
+    # the finder does see the first contact, where the first push-to ends
+    assert finder.find(program.primitives[1].target.X_EG).elements
+
+
+def test_real_approach_stays_clear_of_the_environment(real_data_dir: Path) -> None:
+    from apo.contact import ContactFinder
+    from apo.io.meshes import load_polyhedron
+    from apo.io.poses import load_demonstration
+
+    dem = load_demonstration(real_data_dir / "peg_in_hole.pose.list")
+    G = load_polyhedron(real_data_dir / "peg.step", units="mm")
+    E = load_polyhedron(real_data_dir / "hole.step", units="mm")
+    task = recognize(G, E, dem.times, dem.X_EG, units="mm")
+    pp = PlanParameters(sample_period=0.05)
+    program = plan(task, parameters=pp)
+    tr = trajectory(program)
+    finder = ContactFinder(G, E, threshold=0.5 * pp.standoff)
+    states = finder.find_batch(tr.X_EG[tr.primitive == 0])
+    assert not [k for k, s in enumerate(states) if s.elements]
+    assert finder.find(program.primitives[1].target.X_EG).elements

@@ -15,16 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.perception.camera import Camera
 from apo.perception.example import SYNTHETIC_UP, RenderedDemo, polyhedron_triangles
 from apo.perception.render import DepthNoise, pose_looking_at, render_demonstration
 from apo.spatial import invert_pose
+from apo.typing import FloatArray
 
 __all__ = ["CAMERAS", "DEMOS", "Variant", "random_variant", "render_variant", "variant_camera"]
 
-FloatArray = npt.NDArray[np.float64]
 
 CAMERAS: dict[str, tuple[float, float, float, float, int, int]] = {
     "kinect_v1": (525.0, 525.0, 319.5, 239.5, 640, 480),
