@@ -390,3 +390,59 @@ def test_the_cli_respects_the_umask(tmp_path: Path) -> None:
     assert out.stat().st_mode & 0o777 == 0o750
     for p in out.rglob("*"):
         assert p.stat().st_mode & 0o777 == (0o750 if p.is_dir() else 0o640), p
+
+
+@pytest.mark.slow
+def test_killing_apo_analyze_at_random_leaves_a_whole_set(tmp_path: Path) -> None:
+    """SIGKILL `apo analyze` (3,000 frames) at random moments: the old set or the new, whole.
+
+    Two inputs alternate, so that a mix of two runs would show: after each kill the manifest
+    (sizes and SHA-256 of every file) must be exactly that of a complete run of one input.
+    """
+    from apo.cli.demo import _write_stl
+    from apo.io.poses import write_pose_csv
+    from apo.synthetic import add_noise, peg_in_hole_2d
+
+    demo = peg_in_hole_2d()  # the report is left out: it holds the time it was written
+    _write_stl(demo.grasped, tmp_path / "g.stl", 1000.0)
+    _write_stl(demo.environment, tmp_path / "e.stl", 1000.0)
+    out = tmp_path / "out"
+    cmds, sets = [], []
+    for seed in (1, 2):
+        X = np.repeat(
+            np.asarray(add_noise(demo, sigma_mm=0.3, sigma_deg=0.3, seed=seed).X_EG), 50, axis=0
+        )
+        csv = write_pose_csv(tmp_path / f"in{seed}.csv", np.arange(len(X)) * 0.01, X, units="mm")
+        models = ["--grasped", str(tmp_path / "g.stl"), "--environment", str(tmp_path / "e.stl")]
+        cmds.append(
+            [
+                sys.executable,
+                "-m",
+                "apo.cli",
+                "analyze",
+                str(csv),
+                "--out",
+                str(out),
+                *models,
+                "--no-report",
+            ]
+        )
+        t0 = time.monotonic()
+        subprocess.run(cmds[-1], env=_env(), check=True, capture_output=True)
+        full = time.monotonic() - t0
+        sets.append(assert_whole(out))
+    assert sets[0] != sets[1] and set(sets[0]) == {"task.json", "frames.csv", "dof.png"}
+    rng = np.random.default_rng(2)
+    for k in range(6):
+        p = subprocess.Popen(
+            cmds[k % 2], env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        time.sleep(float(rng.uniform(0.4, 1.1) * full))
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        files = assert_whole(out)
+        assert files in sets, f"kill {k}: a set of no complete run"
+        assert sorted(q.name for q in out.iterdir()) == sorted([MANIFEST, *files])
+    subprocess.run(cmds[0], env=_env(), check=True, capture_output=True)
+    assert assert_whole(out) == sets[0]
+    no_temporaries(tmp_path)
