@@ -106,3 +106,34 @@ def test_one_definition_of_the_array_aliases_and_the_units_table() -> None:
         for alias in ("FloatArray", "IntArray", "BoolArray"):
             assert f"\n{alias} = " not in text, f"{path}: import {alias} from apo.typing"
         assert '"in": 0.0254' not in text, f"{path}: use apo.constants.UNITS"
+
+
+LAYERS = {
+    **dict.fromkeys(("constants", "errors", "typing"), 1),
+    **dict.fromkeys(
+        ("spatial", "geometry", "shapes", "contact", "dof", "transitions", "correction", "task"),
+        2,
+    ),
+    **dict.fromkeys(
+        ("io", "outputs", "recognition", "motion", "perception", "synthetic", "symmetry"), 3
+    ),
+    **dict.fromkeys(("report", "sim"), 4),
+    "cli": 5,
+}
+
+
+@pytest.mark.parametrize("path", _modules("."), ids=lambda p: str(p.relative_to(SRC)))
+def test_imports_point_down_the_layers(path: Path) -> None:
+    # docs/architecture.md: a module imports only from its own layer or the layers below
+    # (cli on top; report, sim; io, outputs, recognition, motion, perception; the core; the
+    # leaves). Planning (motion) never imports the simulator, the report or the CLI.
+    rel = path.relative_to(SRC)
+    own = rel.parts[0].removesuffix(".py")
+    if own in ("__init__", "py"):
+        return
+    assert own in LAYERS, f"{rel}: add its package to LAYERS and to docs/architecture.md"
+    for name in _imports(path):
+        parts = name.split(".")
+        if parts[0] != "apo" or len(parts) < 2 or parts[1] == own:
+            continue
+        assert LAYERS[parts[1]] <= LAYERS[own], f"{rel} imports {name} (a layer above)"

@@ -145,6 +145,7 @@ def test_apo_plan_writes_the_three_outputs(
     prog = program_from_dict(json.loads((out / "motion.json").read_text()), source="motion.json")
     assert prog.units == "mm"
     assert prog.task.sha256 is not None and len(prog.task.sha256) == 64
+    assert (out / prog.task.path).resolve() == (demo_dir / "task.json").resolve()
     # models as recorded in task.json (relative to its folder): still found from there
     for ref in (prog.grasped, prog.environment):
         assert (demo_dir / ref.path).is_file()

@@ -446,3 +446,20 @@ def test_killing_apo_analyze_at_random_leaves_a_whole_set(tmp_path: Path) -> Non
     subprocess.run(cmds[0], env=_env(), check=True, capture_output=True)
     assert assert_whole(out) == sets[0]
     no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("case", ["folder", "under-a-file"])
+def test_apo_track_checks_its_outputs_before_tracking(tmp_path, capsys, monkeypatch, case):
+    import apo.cli.track
+    from apo.cli import main
+
+    def boom(*a: object, **k: object) -> None:
+        raise AssertionError("tracked before the destination was checked")
+
+    monkeypatch.setattr(apo.cli.track, "track_from_args", boom)
+    (tmp_path / "f").write_text("x")
+    out = tmp_path if case == "folder" else tmp_path / "f" / "poses.csv"
+    code = main(["track", str(tmp_path), "--grasped", "g", "--environment", "e", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "apo track: error: --out" in err and "Traceback" not in err
+    assert ("is a folder" if case == "folder" else "is a file, not a folder") in err

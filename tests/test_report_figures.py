@@ -141,3 +141,36 @@ def test_report_rejects_bad_motion(demo_dir: Path, tmp_path: Path, capsys) -> No
     assert main(args) == 2
     assert "missing column" in capsys.readouterr().err
     assert not (tmp_path / "r.html").exists()
+
+
+def test_report_with_replay_output(demo_dir: Path, tmp_path: Path, capsys) -> None:
+    rows = ["t,x,y,z,qw,qx,qy,qz"] + [f"{0.5 * i},{i},0,0,1,0,0,0" for i in range(10)]
+    (tmp_path / "replay.csv").write_text("\n".join(rows) + "\n")
+    verdict = {
+        "verdict": "SUCCESS: final contact state H",
+        "units": "mm",
+        "primitives": [
+            {"index": 0, "kind": "approach", "outcome": "reached", "t": [0.0, 2.0]},
+            {"index": 1, "kind": "push_to", "outcome": "contact", "t": [2.0, 4.5]},
+        ],
+        "visits": [
+            {"state": "A", "t": [0.0, 2.2]},
+            {"state": None, "t": [2.3, 2.9]},
+            {"state": "B", "t": [3.0, 4.5]},
+        ],
+    }
+    (tmp_path / "replay.json").write_text(json.dumps(verdict))
+    out = tmp_path / "r.html"
+    task = str(demo_dir / "task.json")
+    assert main(["report", task, "--replay", str(tmp_path), "--out", str(out)]) == 0
+    tr = read_report_data(out.read_text())["tracks"]
+    assert [t["kind"] for t in tr] == ["executed"]
+    assert tr[0]["note"].startswith("SUCCESS")
+    labels = [tr[0]["labels"][k] for k in unpack_array(tr[0]["label"])]
+    assert labels[0] == "0 approach (reached)" and labels[-1] == "1 push_to (contact)"
+    ids = [s["id"] for s in read_report_data(out.read_text())["task"]["states"]]
+    per = unpack_array(tr[0]["state"])
+    assert [ids[k] if k != 0xFFFF else None for k in per[[0, 5, 9]]] == ["A", None, "B"]
+    (tmp_path / "replay.csv").unlink()
+    assert main(["report", task, "--replay", str(tmp_path), "--out", str(out)]) == 2
+    assert "replay.csv: file not found" in capsys.readouterr().err

@@ -124,6 +124,8 @@ def summary(program: Any) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``apo plan``; return the exit code."""
+    from dataclasses import replace
+
     from apo.io.taskfile import model_paths, read_task, task_ref
     from apo.motion import plan, program_to_dict
     from apo.outputs import output_files
@@ -135,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
     pp = _parameters(args, task.units)
     # destinations checked and locked before the work; each file renamed into place at the end
     with output_files([out / name for name in OUTPUTS], label="--out") as files:
-        program = plan(task, parameters=pp, task_ref=task_ref(task_path))
+        # the task file as seen from motion.json's folder (its models are relative to it)
+        ref = replace(task_ref(task_path), path=_relative(task_path, out))
+        program = plan(task, parameters=pp, task_ref=ref)
         written = write_motion(program, out, grasped, environment, files)
     if args.json:
         print(json.dumps(program_to_dict(program), indent=2))

@@ -27,6 +27,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("task", metavar="TASK_JSON", help="task.json written by apo analyze / demo")
     p.add_argument("--motion", metavar="MOTION_JSON", help="robot motion (apo plan) to replay too")
     p.add_argument(
+        "--replay",
+        metavar="REPLAY",
+        help="simulated execution: replay.json or the folder of apo replay --out DIR",
+    )
+    p.add_argument(
         "--out", metavar="HTML", help="output file (default: report.html beside TASK_JSON)"
     )
     p.add_argument(
@@ -91,6 +96,13 @@ def run(args: argparse.Namespace) -> int:
         mpath = Path(args.motion)
         tracks, mfiles = read_motion_tracks(mpath, units=str(doc["units"]))
         files += [file_entry("motion", mpath), *mfiles]
+    if args.replay:
+        from apo.report.motion import read_replay_track
+
+        tracks = [t for t in tracks if t.kind != "executed"]  # --replay wins
+        track, rfiles = read_replay_track(Path(args.replay), units=str(doc["units"]))
+        tracks.append(track)
+        files += rfiles
     data = report_data(
         doc,
         grasped=G,

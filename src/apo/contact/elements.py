@@ -77,12 +77,14 @@ class ContactElement(ContactPoint):
     ) -> None:
         # The positional order (kind, grasped, environment, point, normals) predates the
         # ContactPoint base, whose fields come first in the dataclass.
-        setattr_ = object.__setattr__
-        setattr_(self, "kind", kind if type(kind) is ContactKind else ContactKind(kind))
-        setattr_(self, "grasped", grasped)
-        setattr_(self, "environment", environment)
-        setattr_(self, "point", point)
-        setattr_(self, "normals", normals)
+        # One dict update (the frozen dataclass forbids setattr): the search makes thousands.
+        self.__dict__.update(
+            kind=kind if type(kind) is ContactKind else ContactKind(kind),
+            grasped=grasped,
+            environment=environment,
+            point=point,
+            normals=normals,
+        )
 
     @property
     def key(self) -> tuple[str, Feature, Feature]:

@@ -241,7 +241,11 @@ def _frames_data(track: FrameTrack, state_ids: list[str], scale: float) -> dict[
     return out
 
 
-def _motion_data(track: MotionTrack, scale: float) -> dict[str, Any]:
+NO_STATE = 0xFFFF
+"""Per-sample state index of a track sample in no task state (``"state"`` arrays, u2)."""
+
+
+def _motion_data(track: MotionTrack, scale: float, state_ids: list[str]) -> dict[str, Any]:
     labels = [str(v) for v in track.labels]
     names = list(dict.fromkeys(labels))
     pos = {v: i for i, v in enumerate(names)}
@@ -250,10 +254,17 @@ def _motion_data(track: MotionTrack, scale: float) -> dict[str, Any]:
     for lab, sid in zip(labels, track.state_ids, strict=False):
         if states[pos[lab]] is None:
             states[pos[lab]] = sid
+    index = {sid: i for i, sid in enumerate(state_ids)}
+    per_sample = None
+    if len(track.state_ids) == len(labels):
+        per_sample = np.array(
+            [index.get(str(v), NO_STATE) if v is not None else NO_STATE for v in track.state_ids]
+        )
     return {
         "name": track.name,
         "kind": track.kind,
         "note": track.note,
+        "state": None if per_sample is None else pack_array(per_sample[keep], "u2"),
         "t": pack_array(np.asarray(track.times, dtype=np.float64)[keep], "f8"),
         "pose": pack_array(poses_to_rows(np.asarray(track.X_EG)[keep], scale), "f4"),
         "labels": names,
@@ -308,7 +319,7 @@ def report_data(
             "environment": None if environment is None else _mesh_data(environment, scale),
         },
         "frames": _frames_data(frames, ids, scale),
-        "tracks": [_motion_data(t, scale) for t in tracks],
+        "tracks": [_motion_data(t, scale, ids) for t in tracks],
         "inputs": dict(inputs or {}),
         "notes": list(notes),
     }

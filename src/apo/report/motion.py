@@ -7,8 +7,10 @@
   ``t, x, y, z, qw, qx, qy, qz`` (seconds, the motion's units, environment frame) and,
   where present, ``primitive`` (index into ``motion.json`` ``primitives``): each sample is
   labelled with its primitive (``"2 push_to translation"``);
-- ``replay.csv`` (written by ``apo replay``), same columns: the executed trajectory in the
-  simulator; ``replay.json`` beside it, where present, gives the verdict shown with it.
+- ``replay.csv`` and ``replay.json`` (written by ``apo replay --out DIR``), where present
+  beside it (or given by ``apo report --replay``): the executed trajectory in the simulator,
+  labelled with the primitive running and coloured by the contact state the simulation
+  reached (``visits``), with the verdict.
 
 Without ``motion.csv`` the planned track is the start pose followed by each primitive's
 target pose (one sample per primitive, one second apart).
@@ -28,7 +30,7 @@ import numpy as np
 from apo.errors import InputFormatError
 from apo.report.html import MotionTrack
 
-__all__ = ["read_motion_tracks", "read_pose_track_csv"]
+__all__ = ["read_motion_tracks", "read_pose_track_csv", "read_replay_track"]
 
 _COLS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
 
@@ -180,19 +182,81 @@ def read_motion_tracks(
             tracks.append(_targets_track(doc, k, labels))
         except (KeyError, TypeError) as exc:
             raise InputFormatError(f"{p}: missing or bad field {exc}") from None
-    rpath = p.with_name("replay.csv")
-    if rpath.is_file():
-        t, X, lab, prim = read_pose_track_csv(rpath, units=munits, labels=labels)
-        sids = [None if q is None else from_states[q] for q in prim]
-        note = ""
-        vpath = p.with_name("replay.json")
-        if vpath.is_file():
-            verdict = _read_json(vpath)
-            if isinstance(verdict, dict):
-                note = str(verdict.get("verdict") or verdict.get("summary") or "")
-            files.append(file_entry("replay verdict", vpath))
-        tracks.append(
-            MotionTrack("simulated execution", "executed", t, X, lab, note=note, state_ids=sids)
-        )
-        files.append(file_entry("executed trajectory", rpath))
+    if p.with_name("replay.json").is_file() or p.with_name("replay.csv").is_file():
+        track, rfiles = read_replay_track(p.parent, units=munits)
+        tracks.append(track)
+        files += rfiles
     return tracks, files
+
+
+def _at(t: np.ndarray, spans: Sequence[Mapping[str, Any]], key: str) -> list[Any]:
+    """For each time in ``t``: ``span[key]`` of the span whose ``t: [a, b]`` contains it."""
+    out: list[Any] = [None] * len(t)
+    for sp in spans:
+        a, b = (float(v) for v in sp["t"])
+        for i in np.flatnonzero((t >= a - 1e-9) & (t <= b + 1e-9)):
+            if out[i] is None:
+                out[i] = sp.get(key)
+    return out
+
+
+def read_replay_track(path: str | Path, *, units: str) -> tuple[MotionTrack, list[dict[str, Any]]]:
+    """Read the simulated execution written by ``apo replay --out DIR``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``replay.json``, ``replay.csv`` or the folder holding them.
+    units : str
+        Units of ``replay.csv`` when ``replay.json`` does not say (its ``"units"``).
+
+    Returns
+    -------
+    track : MotionTrack
+        Samples labelled with the primitive running (``"3 slide (reached)"``) and the
+        contact state the simulation was in (``replay.json`` ``visits``), the verdict as note.
+    files : list of dict
+        Inputs-panel entries of the files read.
+    """
+    from apo.report.sources import file_entry
+
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    csv_path, json_path = folder / "replay.csv", folder / "replay.json"
+    if not csv_path.is_file():
+        raise InputFormatError(f"{csv_path}: file not found (written by apo replay --out DIR)")
+    verdict: Mapping[str, Any] = {}
+    files = []
+    if json_path.is_file():
+        doc = _read_json(json_path)
+        if not isinstance(doc, dict):
+            raise InputFormatError(f"{json_path}: expected a JSON object")
+        verdict = doc
+        files.append(file_entry("replay verdict", json_path))
+    t, X, _lab, _prim = read_pose_track_csv(csv_path, units=str(verdict.get("units") or units))
+    files.append(file_entry("executed trajectory", csv_path))
+    try:
+        prims = _at(t, verdict.get("primitives") or [], "index")
+        kinds = {int(q["index"]): q for q in verdict.get("primitives") or []}
+        states = _at(t, verdict.get("visits") or [], "state")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputFormatError(f"{json_path}: bad primitives/visits: {exc}") from None
+    labels = []
+    for k in prims:
+        q = kinds.get(int(k)) if k is not None else None
+        labels.append(
+            f"{q['index']} {q.get('kind', '?')} ({q.get('outcome', '?')})" if q else "executed"
+        )
+    note = str(verdict.get("verdict") or verdict.get("summary") or "")
+    return (
+        MotionTrack(
+            "simulated execution",
+            "executed",
+            t,
+            X,
+            labels,
+            note=note,
+            state_ids=[None if v is None else str(v) for v in states],
+        ),
+        files,
+    )

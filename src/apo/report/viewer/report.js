@@ -100,12 +100,14 @@
     var tt = unpack(tr.t);
     var pose = unpack(tr.pose);
     var lab = unpack(tr.label);
+    var per = unpack(tr.state);  // per-sample state index (65535: none), where given
     tracks.push({
       name: tr.name, kind: tr.kind, note: tr.note, n: tt.length, t: tt,
       pose: function (i) { return row(pose, i); },
       ghost: function () { return null; },
       solidName: 'grasped, ' + tr.name, ghostName: '',
       state: function (i) {
+        if (per) { return per[i] === 65535 ? null : per[i]; }
         var sid = tr.label_states ? tr.label_states[lab[i]] : null;
         var k = sid === null || sid === undefined ? undefined : stateIndex[sid];
         return k === undefined ? null : k;
@@ -681,7 +683,8 @@
     var s = states[si];
     letter.textContent = s.id; letter.style.background = stateColor[si];
     var prefix = demo ? '' : '<div class="kv"><b>primitive</b> ' + esc(tr.label(i)) + '</div>' +
-                 '<div class="kv muted">the object is in this state while the primitive runs</div>';
+                 '<div class="kv muted">' + (tr.kind === 'executed' ? 'contact state the simulation is in'
+                                           : 'state the primitive starts from') + '</div>';
     var f = s.fig25, S = s.singular ? 'S' : '';
     var h = '<table class="eight" id="cur-fig25"><tr><th colspan="3">translation ' + S + '</th>' +
             '<th colspan="3">rotation ' + S + '</th><th colspan="2">restraining</th></tr>' +
