@@ -270,10 +270,12 @@ def test_repeated_runs_write_byte_identical_sets(tmp_path, capsys):
     sets = []
     for run in ("a", "b"):
         out = tmp_path / run
-        assert main(["demo", "--out", str(out), "--seed", "4", "--no-report"]) == 0
+        assert main(["demo", "--out", str(out), "--seed", "4"]) == 0
         sets.append({p.relative_to(out).as_posix(): p.read_bytes() for p in out.rglob("*")})
     capsys.readouterr()
     assert sorted(sets[0]) == sorted(sets[1])
-    assert {"task.json", "frames.csv", "dof.png", ".apo-outputs.json"} <= set(sets[0])
+    assert {"task.json", "frames.csv", "dof.png", "report.html", ".apo-outputs.json"} <= set(
+        sets[0]
+    )
     for name, data in sets[0].items():
         assert data == sets[1][name], name

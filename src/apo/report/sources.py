@@ -226,8 +226,6 @@ def inputs_summary(
     task: Mapping[str, Any], files: Sequence[Mapping[str, Any]] = ()
 ) -> dict[str, Any]:
     """Return the inputs panel: files with hashes, units, threshold, extras, version."""
-    from datetime import UTC, datetime
-
     from apo import __version__
 
     extra = task.get("extra") or {}
@@ -240,9 +238,24 @@ def inputs_summary(
         "noise": extra.get("noise") if isinstance(extra, Mapping) else None,
         "extra": extra,
         "apo_version": __version__,
-        "written": datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S UTC"),
+        "written": _written(),
         "files": [dict(f) for f in files],
     }
+
+
+def _written() -> str | None:
+    """Time stamp of the page: only from ``SOURCE_DATE_EPOCH`` (reproducible builds), else None.
+
+    Two identical runs must write identical bytes (docs/outputs.md), so the wall clock is
+    never embedded.
+    """
+    import os
+    from datetime import UTC, datetime
+
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if not epoch.isdigit():
+        return None
+    return datetime.fromtimestamp(int(epoch), UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
 def recognition_report(
