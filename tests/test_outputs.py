@@ -264,7 +264,10 @@ with OutputSet(dest) as outs:
 def test_a_kill_during_a_large_write_leaves_the_old_or_the_new_set_whole(tmp_path: Path):
     dest = tmp_path / "out"
     rng = np.random.default_rng(12)
-    subprocess.run([sys.executable, "-c", _WRITER, str(dest), "run0-", "2"], env=_env(), check=True)
+    # time one whole run, so that the kills land inside a run on a fast machine as on a slow one
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", _WRITER, str(dest), "run0-", "12"], env=_env(), check=True)
+    duration = time.perf_counter() - start
     tags = {"run0-"}
     kills = 0
     for k in range(1, 7):
@@ -275,7 +278,7 @@ def test_a_kill_during_a_large_write_leaves_the_old_or_the_new_set_whole(tmp_pat
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        time.sleep(float(rng.uniform(0.05, 0.6)))
+        time.sleep(float(rng.uniform(0.3, 0.95)) * duration)
         p.send_signal(signal.SIGKILL)
         p.wait()
         kills += p.returncode == -signal.SIGKILL
