@@ -266,7 +266,9 @@ def test_a_kill_during_a_large_write_leaves_the_old_or_the_new_set_whole(tmp_pat
     rng = np.random.default_rng(12)
     # time one whole run, so that the kills land inside a run on a fast machine as on a slow one
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", _WRITER, str(dest), "run0-", "12"], env=_env(), check=True)
+    subprocess.run(
+        [sys.executable, "-c", _WRITER, str(dest), "run0-", "12"], env=_env(), check=True
+    )
     duration = time.perf_counter() - start
     tags = {"run0-"}
     kills = 0
