@@ -544,15 +544,10 @@ def _trace_loops(
     return loops
 
 
-def _assemble(
-    V: FloatArray, T: IntArray, twin: IntArray, groups: IntArray, scale: float, label: str
-) -> Polyhedron:
-    he = _half_edges(T)
-    n_faces = int(groups.max()) + 1
-    tri_of = np.arange(len(he)) // 3
-    is_boundary = groups[tri_of] != groups[tri_of[twin]]
-
-    # Face normals: area-weighted mean of the triangle normals (sliver-robust).
+def _face_normals(
+    V: FloatArray, T: IntArray, groups: IntArray, n_faces: int, scale: float, label: str
+) -> FloatArray:
+    """Return unit face normals: area-weighted mean of the triangle normals (sliver-robust)."""
     p = V[T]
     cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     fn = np.zeros((n_faces, 3))
@@ -564,20 +559,12 @@ def _assemble(
         f = int(np.argmin(face_area))
         raise GeometryError(f"{label}: degenerate face of zero area near {V[T[groups == f][0, 0]]}")
     fn /= fn_norm[:, None]
+    return fn
 
-    # Boundary loops of each face, in merged-vertex indices.
-    b_idx = np.flatnonzero(is_boundary)
-    b_face = groups[tri_of[b_idx]]
-    order = np.argsort(b_face, kind="stable")
-    b_idx, b_face = b_idx[order], b_face[order]
-    splits = np.searchsorted(b_face, np.arange(n_faces + 1))
-    face_loops: list[list[IntArray]] = []
-    for f in range(n_faces):
-        face_loops.append(_trace_loops(V, he, b_idx[splits[f] : splits[f + 1]], fn[f], label))
 
-    # Corner vertices: on >= 3 feature edges, or on 2 that are not collinear.
-    fe = he[b_idx]
-    fe = np.unique(np.sort(fe, axis=1), axis=0)
+def _corner_vertices(V: FloatArray, feature_edges: IntArray) -> BoolArray:
+    """Mark corner vertices: on >= 3 feature edges, or on 2 that are not collinear."""
+    fe = np.unique(np.sort(feature_edges, axis=1), axis=0)
     nbrs: dict[int, list[int]] = {}
     for a, b in fe:
         nbrs.setdefault(int(a), []).append(int(b))
@@ -591,56 +578,54 @@ def _assemble(
         d2 = V[nb[1]] - V[v]
         s = np.linalg.norm(np.cross(d1, d2)) / (np.linalg.norm(d1) * np.linalg.norm(d2))
         corner[v] = not (s <= tol.coplanar_angle and float(d1 @ d2) < 0.0)
-    new_index = np.full(len(V), -1, dtype=np.int64)
-    new_index[corner] = np.arange(int(corner.sum()))
-    verts = V[corner]
+    return corner
 
-    faces: list[IntArray] = []
-    holes: list[tuple[IntArray, ...]] = []
-    bases = _plane_bases(fn)
-    for f in range(n_faces):
-        loops = face_loops[f]
-        if len(loops) == 1 and len(loops[0]) == 3 and corner[loops[0]].all():
-            kept = new_index[loops[0]]
-            faces.append(np.roll(kept, -int(np.argmin(kept))))
-            holes.append(())
-            continue
-        outer: list[IntArray] = []
-        inner: list[IntArray] = []
-        for loop in loops:
-            kept = new_index[loop[corner[loop]]]
-            if len(kept) < 3:
-                raise GeometryError(
-                    f"{label}: degenerate face boundary with {len(kept)} corner(s) near "
-                    f"{V[loop[0]].tolist()}"
-                )
-            kept = np.roll(kept, -int(np.argmin(kept)))
-            if len(loops) == 1:
-                outer.append(kept)
-                continue
-            xy = verts[kept] @ bases[f].T
-            (outer if _loop_area2d(xy) > 0.0 else inner).append(kept)
-        if len(outer) != 1:
+
+def _face_outline(
+    f: int,
+    loops: list[IntArray],
+    corner: BoolArray,
+    new_index: IntArray,
+    verts: FloatArray,
+    basis: FloatArray,
+    V: FloatArray,
+    label: str,
+) -> tuple[IntArray, tuple[IntArray, ...]]:
+    """Return the outer boundary and holes of face ``f`` (corner-vertex ids, lowest first)."""
+    if len(loops) == 1 and len(loops[0]) == 3 and corner[loops[0]].all():
+        kept = new_index[loops[0]]
+        return np.roll(kept, -int(np.argmin(kept))), ()
+    outer: list[IntArray] = []
+    inner: list[IntArray] = []
+    for loop in loops:
+        kept = new_index[loop[corner[loop]]]
+        if len(kept) < 3:
             raise GeometryError(
-                f"{label}: face {f} has {len(outer)} outer boundaries (expected one); "
-                "the mesh may self-intersect"
+                f"{label}: degenerate face boundary with {len(kept)} corner(s) near "
+                f"{V[loop[0]].tolist()}"
             )
-        faces.append(outer[0])
-        holes.append(tuple(sorted(inner, key=lambda lp: int(lp[0]))))
-    faces_t = tuple(faces)
-    holes_t = tuple(holes)
-    flat, flat_face, _, flat_next = _flatten_loops(faces_t, holes_t)
+        kept = np.roll(kept, -int(np.argmin(kept)))
+        if len(loops) == 1:
+            outer.append(kept)
+            continue
+        xy = verts[kept] @ basis.T
+        (outer if _loop_area2d(xy) > 0.0 else inner).append(kept)
+    if len(outer) != 1:
+        raise GeometryError(
+            f"{label}: face {f} has {len(outer)} outer boundaries (expected one); "
+            "the mesh may self-intersect"
+        )
+    return outer[0], tuple(sorted(inner, key=lambda lp: int(lp[0])))
 
-    face_offsets = np.zeros(n_faces)
-    np.add.at(face_offsets, flat_face, np.einsum("ij,ij->i", verts[flat], fn[flat_face]))
-    face_offsets /= np.bincount(flat_face, minlength=n_faces)
 
-    # Edges from the loops: each directed boundary segment (flat[i] -> flat[next[i]]).
+def _pair_edges(
+    flat: IntArray, flat_face: IntArray, flat_next: IntArray, n_verts: int, label: str
+) -> tuple[IntArray, IntArray]:
+    """Pair the directed boundary segments into edges (v0 < v1) and their two faces."""
     segs = np.stack([flat, flat[flat_next], flat_face], axis=1)
     lo = np.minimum(segs[:, 0], segs[:, 1])
     hi = np.maximum(segs[:, 0], segs[:, 1])
-    nv = np.int64(len(verts))
-    key = lo * nv + hi
+    key = lo * np.int64(n_verts) + hi
     order = np.lexsort((segs[:, 0] > segs[:, 1], key))
     key_s = key[order]
     if len(key_s) % 2 or np.any(key_s[0::2] != key_s[1::2]) or np.any(key_s[1:-1:2] == key_s[2::2]):
@@ -651,30 +636,79 @@ def _assemble(
         raise GeometryError(f"{label}: face boundaries do not pair up into oriented edges")
     edges = forward[:, :2].copy()
     edge_faces = np.stack([forward[:, 2], backward[:, 2]], axis=1)
-    d = verts[edges[:, 1]] - verts[edges[:, 0]]
-    edge_convex = np.einsum("ij,ij->i", np.cross(fn[edge_faces[:, 0]], fn[edge_faces[:, 1]]), d) > 0
+    return edges, edge_faces
 
-    n_v = len(verts)
+
+def _vertex_edge_lists(edges: IntArray, n_v: int) -> tuple[IntArray, ...]:
+    """Return the edge ids incident to each vertex, in increasing order."""
     inc = np.concatenate([edges[:, 0], edges[:, 1]])
     eid = np.concatenate([np.arange(len(edges)), np.arange(len(edges))])
     order = np.lexsort((eid, inc))
     vsplit = np.searchsorted(inc[order], np.arange(n_v + 1))
     eid_sorted = eid[order].astype(np.int64)
-    vertex_edges = tuple(eid_sorted[vsplit[v] : vsplit[v + 1]] for v in range(n_v))
+    return tuple(eid_sorted[vsplit[v] : vsplit[v + 1]] for v in range(n_v))
 
-    corners = _vertex_corners(faces_t, holes_t, n_v)
-    vertex_faces = tuple(_unique_in_order(c[:, 0]) for c in corners)
 
+def _face_triangulations(
+    faces: tuple[IntArray, ...],
+    holes: tuple[tuple[IntArray, ...], ...],
+    verts: FloatArray,
+    bases: FloatArray,
+) -> tuple[IntArray, ...]:
+    """Triangulate each polygonal face (with its holes), in vertex indices."""
     face_triangles: list[IntArray] = []
     tri3 = np.array([[0, 1, 2]], dtype=np.int64)
-    for f in range(n_faces):
-        loops_f = (faces_t[f], *holes_t[f])
+    for f in range(len(faces)):
+        loops_f = (faces[f], *holes[f])
         if len(loops_f) == 1 and len(loops_f[0]) == 3:
             face_triangles.append(loops_f[0][tri3])
             continue
         xy = [verts[lp] @ bases[f].T for lp in loops_f]
         local = triangulate_polygon(xy[0], xy[1:])
         face_triangles.append(np.concatenate(loops_f)[local].astype(np.int64))
+    return tuple(face_triangles)
+
+
+def _assemble(
+    V: FloatArray, T: IntArray, twin: IntArray, groups: IntArray, scale: float, label: str
+) -> Polyhedron:
+    he = _half_edges(T)
+    n_faces = int(groups.max()) + 1
+    tri_of = np.arange(len(he)) // 3
+    is_boundary = groups[tri_of] != groups[tri_of[twin]]
+    fn = _face_normals(V, T, groups, n_faces, scale, label)
+
+    # Boundary loops of each face, in merged-vertex indices.
+    b_idx = np.flatnonzero(is_boundary)
+    b_face = groups[tri_of[b_idx]]
+    order = np.argsort(b_face, kind="stable")
+    b_idx, b_face = b_idx[order], b_face[order]
+    splits = np.searchsorted(b_face, np.arange(n_faces + 1))
+    face_loops = [
+        _trace_loops(V, he, b_idx[splits[f] : splits[f + 1]], fn[f], label) for f in range(n_faces)
+    ]
+
+    corner = _corner_vertices(V, he[b_idx])
+    new_index = np.full(len(V), -1, dtype=np.int64)
+    new_index[corner] = np.arange(int(corner.sum()))
+    verts = V[corner]
+    bases = _plane_bases(fn)
+    outlines = [
+        _face_outline(f, face_loops[f], corner, new_index, verts, bases[f], V, label)
+        for f in range(n_faces)
+    ]
+    faces_t = tuple(o[0] for o in outlines)
+    holes_t = tuple(o[1] for o in outlines)
+    flat, flat_face, _, flat_next = _flatten_loops(faces_t, holes_t)
+
+    face_offsets = np.zeros(n_faces)
+    np.add.at(face_offsets, flat_face, np.einsum("ij,ij->i", verts[flat], fn[flat_face]))
+    face_offsets /= np.bincount(flat_face, minlength=n_faces)
+
+    edges, edge_faces = _pair_edges(flat, flat_face, flat_next, len(verts), label)
+    d = verts[edges[:, 1]] - verts[edges[:, 0]]
+    edge_convex = np.einsum("ij,ij->i", np.cross(fn[edge_faces[:, 0]], fn[edge_faces[:, 1]]), d) > 0
+    corners = _vertex_corners(faces_t, holes_t, len(verts))
 
     poly = Polyhedron(
         name=label,
@@ -683,12 +717,12 @@ def _assemble(
         face_holes=holes_t,
         face_normals=fn,
         face_offsets=face_offsets,
-        face_triangles=tuple(face_triangles),
+        face_triangles=_face_triangulations(faces_t, holes_t, verts, bases),
         edges=edges,
         edge_faces=edge_faces.astype(np.int64),
         edge_convex=edge_convex,
-        vertex_edges=vertex_edges,
-        vertex_faces=vertex_faces,
+        vertex_edges=_vertex_edge_lists(edges, len(verts)),
+        vertex_faces=tuple(_unique_in_order(c[:, 0]) for c in corners),
         scale=scale,
     )
     poly.__dict__["vertex_corners"] = corners
