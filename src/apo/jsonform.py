@@ -54,8 +54,12 @@ def rounded(x: float, nd: int = 9) -> float:
 
 
 def rounded_list(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
-    """Return the entries of ``a`` (flattened) times ``scale``, each :func:`rounded`."""
-    return [rounded(v * scale) for v in np.asarray(a, dtype=float).ravel()]
+    """Return the entries of ``a`` (flattened) times ``scale``, each :func:`rounded`.
+
+    On plain floats (numpy scalars cost ten times more; task.json holds many).
+    """
+    arr = np.asarray(a, dtype=float).ravel()
+    return [round(v, 9) for v in (arr if scale == 1.0 else arr * scale).tolist()]
 
 
 def rounded_rows(a: npt.ArrayLike) -> list[list[float]]:
