@@ -185,7 +185,10 @@ def test_forces_push_along_the_direction_and_into_kept_contacts(name: str) -> No
             np.testing.assert_allclose(
                 c.force_directions.T @ c.forces, pp.hold_force * se.direction
             )
-            assert c.torque_axes.shape[0] == 0
+            # torque-free at most about the entrance direction (the walls turn it into line)
+            assert c.torque_axes.shape[0] <= 1
+            assert np.allclose(np.abs(c.torque_axes @ se.direction), 1.0)
+            assert np.allclose(c.torques, 0.0)
             assert np.allclose(se.directions @ se.direction, 0.0)
             assert se.pattern == ("none", "zigzag", "spiral")[len(se.directions)]
         # never pulls away from a contact of the start state it keeps
