@@ -343,21 +343,35 @@ def _state_to_dict(s: State, k: float, q: FloatArray) -> dict[str, Any]:
         "singular": bool(s.singular),
         "fig25": [int(v) for v in s.fig25],
         "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
-        "elements": [
-            {
-                "kind": str(e.kind),
-                "grasped": [e.grasped[0], int(e.grasped[1])],
-                "environment": [e.environment[0], int(e.environment[1])],
-                "point": _vec(e.point, k),
-                "normals": [_vec(n) for n in np.asarray(e.normals).reshape(-1, 3)],
-            }
-            for e in s.elements
-        ],
+        "elements": _elements_to_dicts(s.elements, k),
         "pose": {"position": _vec(p, k), "quaternion": _vec(q)},
         "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
         "pose_converged": bool(s.pose_converged),
         "same_as": s.same_as,
     }
+
+
+def _rows(a: npt.ArrayLike) -> list[list[float]]:
+    """``[_vec(row) for row in a.reshape(-1, 3)]`` in one conversion."""
+    rows = np.asarray(a, dtype=float).reshape(-1, 3).tolist()
+    return [[round(v, 9) for v in row] for row in rows]
+
+
+def _elements_to_dicts(elements: Sequence[ContactElement], k: float) -> list[dict[str, Any]]:
+    """JSON form of a state's elements, points times ``k`` (all points in one conversion)."""
+    if not elements:
+        return []
+    points = np.array([e.point for e in elements], dtype=float).reshape(len(elements), 3)
+    return [
+        {
+            "kind": str(e.kind),
+            "grasped": [e.grasped[0], int(e.grasped[1])],
+            "environment": [e.environment[0], int(e.environment[1])],
+            "point": [round(v, 9) for v in p],
+            "normals": _rows(e.normals),
+        }
+        for e, p in zip(elements, (points if k == 1.0 else points * k).tolist(), strict=True)
+    ]
 
 
 def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
@@ -377,7 +391,7 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
                 "direction": _vec(np.zeros(3) if u.direction is None else u.direction),
                 "point": None if u.point is None else _vec(u.point, k),
                 "source": u.source,
-                "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
+                "subspace": _rows(u.subspace),
             }
             for u in t.subskills
         ],
