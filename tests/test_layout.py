@@ -137,3 +137,103 @@ def test_imports_point_down_the_layers(path: Path) -> None:
         if parts[0] != "apo" or len(parts) < 2 or parts[1] == own:
             continue
         assert LAYERS[parts[1]] <= LAYERS[own], f"{rel} imports {name} (a layer above)"
+
+
+# Functions are short (developers' guide: about 80 lines at most). A function's length is
+# counted from its first statement after the docstring to its last line (comments and blank
+# lines inside it count; the docstring and the signature do not). The allowlist names the
+# functions allowed to be longer, each with its owner and why; an entry that is no longer
+# needed (the function was split, renamed or removed) fails too, so the list only shrinks.
+MAX_FUNCTION_LINES = 80
+LONG_FUNCTIONS_ALLOWED: dict[str, str] = {
+    # split pending (session 2): each owner removes its entry when it splits the function.
+    "dof._analyze_regular": "struct: split pending",
+    "io.poses.read_pose_list": "speed: split pending",
+    "io.poses.read_pose_csv": "speed: split pending",
+    "perception.track.track_frames": "perception: split pending",
+    "report.figures.state_graph_figure": "speed: split pending",
+    "sim.execute.run_primitive": "plan: split pending",
+    "sim.replay.replay": "simdyn: split pending",
+    "synthetic.peg_in_hole_2d": "accuracy: split pending",
+}
+
+
+def _function_lengths_in(source: str, module: str) -> dict[str, int]:
+    """``{"module.Class.function": lines}`` of every function (nested ones too) in ``source``."""
+    lengths: dict[str, int] = {}
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
+                name = f"{prefix}.{child.name}"
+                body = child.body
+                doc = body[0]
+                if (
+                    len(body) > 1
+                    and isinstance(doc, ast.Expr)
+                    and isinstance(doc.value, ast.Constant)
+                    and isinstance(doc.value.value, str)
+                ):
+                    body = body[1:]
+                first = body[0]
+                decorators = getattr(first, "decorator_list", [])
+                start = min([first.lineno] + [d.lineno for d in decorators])
+                assert child.end_lineno is not None
+                lengths[name] = child.end_lineno - start + 1
+                visit(child, name)
+            elif isinstance(child, ast.ClassDef):
+                visit(child, f"{prefix}.{child.name}")
+            else:
+                visit(child, prefix)
+
+    visit(ast.parse(source), module)
+    return lengths
+
+
+def _function_lengths() -> dict[str, int]:
+    """Lengths of every function in ``src/apo``, named ``package.module.Class.function``."""
+    lengths: dict[str, int] = {}
+    for path in _modules("."):
+        module = ".".join(path.relative_to(SRC).with_suffix("").parts)
+        text = path.read_text(encoding="utf-8")
+        lengths |= _function_lengths_in(text, module.removesuffix(".__init__"))
+    return lengths
+
+
+def test_functions_are_short() -> None:
+    lengths = _function_lengths()
+    long = {n: k for n, k in lengths.items() if k > MAX_FUNCTION_LINES}
+    new = sorted(f"{n} ({k} lines)" for n, k in long.items() if n not in LONG_FUNCTIONS_ALLOWED)
+    assert not new, f"functions over {MAX_FUNCTION_LINES} lines (split them): {new}"
+    stale = sorted(n for n in LONG_FUNCTIONS_ALLOWED if n not in long)
+    assert not stale, f"remove from LONG_FUNCTIONS_ALLOWED (now short or gone): {stale}"
+
+
+def test_function_length_counts_the_body_after_the_docstring() -> None:
+    source = """
+def f(
+    a,
+):
+    '''Doc.
+
+    More.
+    '''
+    x = a
+
+    # comment
+    return x
+class C:
+    def m(self):
+        @staticmethod
+        def g():
+            return 1
+        return g
+def h():
+    '''Only a docstring.'''
+"""
+    assert _function_lengths_in(source, "mod") == {
+        "mod.f": 4,
+        "mod.C.m": 4,
+        "mod.C.m.g": 1,
+        "mod.h": 1,
+    }
