@@ -236,3 +236,48 @@ def h():
         "mod.C.m.g": 1,
         "mod.h": 1,
     }
+
+
+# Numeric tolerances live in apo.constants (the dataclass `tol`, each field saying why it
+# differs from its neighbours). A float literal of the core that looks like a tolerance
+# (0 < |x| < 0.01, or within 0.01 of +-1 but not +-1, like 1e-9 or 0.999) must be a field of
+# `tol` instead; the allowlist names the few that are not tolerances, with the reason.
+TOLERANCE_MODULES = (*CORE, "shapes")
+TOLERANCE_LIKE_ALLOWED: dict[tuple[str, float], str] = {
+    ("contact/separating_normals.py", 1e-3): (
+        "_CENTRE_WEIGHT: a tie-break weight (1/rad) of a score, not a tolerance"
+    ),
+}
+
+
+def _tolerance_like(x: float) -> bool:
+    return 0 < abs(x) < 0.01 or 0 < abs(abs(x) - 1) < 0.01
+
+
+def _tolerance_literals(source: str) -> list[tuple[int, float]]:
+    return sorted(
+        (node.lineno, node.value)
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Constant)
+        and isinstance(node.value, float)
+        and _tolerance_like(node.value)
+    )
+
+
+def test_tolerances_only_in_constants() -> None:
+    found: set[tuple[str, float]] = set()
+    new: list[str] = []
+    for path in _modules(*TOLERANCE_MODULES):
+        rel = str(path.relative_to(SRC))
+        for line, value in _tolerance_literals(path.read_text(encoding="utf-8")):
+            found.add((rel, value))
+            if (rel, value) not in TOLERANCE_LIKE_ALLOWED:
+                new.append(f"{rel}:{line}: {value!r}")
+    assert not new, f"tolerance literals outside apo.constants (add a field to tol): {new}"
+    stale = sorted(k for k in TOLERANCE_LIKE_ALLOWED if k not in found)
+    assert not stale, f"remove from TOLERANCE_LIKE_ALLOWED (no longer found): {stale}"
+
+
+def test_tolerance_literal_detector() -> None:
+    source = "a = 1e-9\nb = x < 0.999\nc = 0.5 * y\nd = 1.0 + 2.0\ne = -1e-12\nf = 1.001\n"
+    assert _tolerance_literals(source) == [(1, 1e-9), (2, 0.999), (5, 1e-12), (6, 1.001)]

@@ -69,7 +69,7 @@ the initial residual is flagged (turning G back by a small angle moves its far v
 times more than the contact points)."""
 
 _MAX_HALVINGS = 8
-_STALL = 0.999  # a step that does not lower the cost below this fraction counts as a stall
+_STALL = tol.correction_stall
 
 
 # --------------------------------------------------------------------------------------------
@@ -200,7 +200,7 @@ def _poses_from_twists(xi: FloatArray) -> FloatArray:
     """Batched ``apo.spatial.pose_from_twist``: twists (n, 6) ``[omega; v]`` -> poses (n, 4, 4)."""
     w, v = xi[:, :3], xi[:, 3:]
     th = np.sqrt(np.einsum("ni,ni->n", w, w))
-    small = th < 1e-8
+    small = th < tol.twist_series_angle
     ths = np.where(small, 1.0, th)
     A = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
     B = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
@@ -502,7 +502,7 @@ class ContactConstraints:
             e = np.broadcast_to(self._ee[None], u.shape)
             cr = _cross(u, e)
             nc = np.sqrt(np.einsum("nki,nki->nk", cr, cr))
-            nc = np.maximum(nc, 1e-12)
+            nc = np.maximum(nc, tol.zero_norm)
             m = cr / nc[..., None]
             sign = np.where(np.einsum("nki,ki->nk", m, self._eref) < 0.0, -1.0, 1.0)
             m = m * sign[..., None]

@@ -267,14 +267,14 @@ def _directions(normals: FloatArray) -> tuple[FloatArray, BoolArray]:
     ``2**-e`` that brings its largest absolute component into [0.5, 1), which is exact, so
     no finite length overflows (components up to 1e308) and the directions are those of
     ``normals / |normals|`` bit for bit wherever that does not overflow. A row is zero when
-    its length is at most 1e-12 (its direction is then not meaningful).
+    its length is at most ``tol.zero_norm`` (1e-12; its direction is then not meaningful).
     """
     _, e = np.frexp(np.abs(normals).max(axis=1))  # e = 0 for a zero row
     scaled = np.ldexp(normals, -e[:, None])
     length = np.sqrt(np.einsum("ij,ij->i", scaled, scaled))  # in [0.5, sqrt(3)), or 0
     # The true length is length * 2**e; where e > 0 it is at least 1, so only e <= 0 needs
     # the (exact, never overflowing) rescaling for the comparison.
-    nonzero = np.ldexp(length, np.minimum(e, 0)) > 1e-12
+    nonzero = np.ldexp(length, np.minimum(e, 0)) > tol.zero_norm
     unit = scaled / np.where(nonzero, length, 1.0)[:, None]
     return unit, nonzero
 

@@ -34,7 +34,7 @@ def check_quaternion(q: npt.ArrayLike) -> FloatArray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"quaternion has non-finite entries: {arr.tolist()}")
     n = float(np.linalg.norm(arr))
-    if n < 1e-9:
+    if n < tol.quaternion_zero_norm:
         raise ValueError("quaternion has zero norm")
     return arr / n
 
@@ -62,8 +62,8 @@ def matrix_from_axis_angle(axis: npt.ArrayLike, angle: float) -> FloatArray:
     """Return the rotation by ``angle`` (rad) about ``axis`` (normalised here)."""
     a = np.asarray(axis, dtype=float)
     n = float(np.linalg.norm(a))
-    if n < 1e-12:
-        if abs(angle) > 1e-12:
+    if n < tol.zero_norm:
+        if abs(angle) > tol.zero_norm:
             raise ValueError("axis-angle with zero axis and non-zero angle")
         return np.eye(3)
     return np.asarray(Rotation.from_rotvec(a / n * angle).as_matrix(), dtype=float)
@@ -118,7 +118,7 @@ def pose_from_twist(twist: npt.ArrayLike) -> FloatArray:
     w, v = xi[:3], xi[3:]
     th = float(np.linalg.norm(w))
     W = skew(w)
-    if th < 1e-12:
+    if th < tol.zero_norm:
         R = np.eye(3) + W
         V = np.eye(3) + 0.5 * W
     else:
