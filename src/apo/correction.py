@@ -28,7 +28,7 @@ import numpy.typing as npt
 from apo.constants import tol
 from apo.contact import ContactElement, ContactKind
 from apo.geometry import Polyhedron
-from apo.spatial import check_poses
+from apo.spatial import check_poses, perpendicular_basis
 from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
@@ -185,17 +185,6 @@ def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
-def _perp_basis(u: FloatArray) -> FloatArray:
-    """Orthonormal basis (2, 3) perpendicular to unit ``u``; the one ``apo.contact`` uses.
-
-    ``t1 = u x (1, 0, 0)`` (or ``u x (0, 1, 0)`` when ``u`` is close to x), ``t2 = u x t1``.
-    """
-    x, y, z = float(u[0]), float(u[1]), float(u[2])
-    t1 = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])
-    t1 /= math.sqrt(float(t1 @ t1))
-    return np.stack([t1, np.cross(u, t1)])
-
-
 def _poses_from_twists(xi: FloatArray) -> FloatArray:
     """Batched ``apo.spatial.pose_from_twist``: twists (n, 6) ``[omega; v]`` -> poses (n, 4, 4)."""
     w, v = xi[:, :3], xi[:, 3:]
@@ -318,7 +307,7 @@ def _add_point_rows(rows: _Rows, G: Polyhedron, E: Polyhedron, el: ContactElemen
     elif el.kind is ContactKind.VE:
         e = _feature(E, el.environment, "e", i)
         b0 = E.vertices[E.edges[e, 0]]
-        dirs = list(_perp_basis(E.edge_directions[e]))
+        dirs = list(perpendicular_basis(E.edge_directions[e]))
         offsets = [float(kj @ b0) for kj in dirs]
     else:  # VV
         q = E.vertices[_feature(E, el.environment, "v", i)]
@@ -341,7 +330,7 @@ def _add_direction_rows(
     else:  # EV
         e = _feature(G, el.grasped, "e", i)
         a0 = G.vertices[G.edges[e, 0]]
-        dirs = list(_perp_basis(G.edge_directions[e]))
+        dirs = list(perpendicular_basis(G.edge_directions[e]))
         offsets = [float(kj @ a0) for kj in dirs]
     q = E.vertices[_feature(E, el.environment, "v", i)]
     for u, c in zip(dirs, offsets, strict=True):

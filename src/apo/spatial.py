@@ -8,6 +8,7 @@ velocity of the point at the origin of the frame the twist is expressed in.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -144,6 +145,25 @@ def rotation_angle(R: npt.ArrayLike) -> float:
 # --------------------------------------------------------------------------------------------
 # The pose validator
 # --------------------------------------------------------------------------------------------
+
+
+def perpendicular_basis(n: FloatArray) -> FloatArray:
+    """Return a deterministic orthonormal basis (2, 3) of the plane perpendicular to unit ``n``.
+
+    ``t1 = n x (1, 0, 0)`` normalised (``n x (0, 1, 0)`` when ``|n_x| >= 0.9``), ``t2 = n x t1``,
+    so ``(t1, t2, n)`` is right-handed. The one basis of the contact search and of pose
+    correction (``n`` is not normalised here).
+
+    Examples
+    --------
+    >>> perpendicular_basis(np.array([0.0, 0.0, 1.0])).tolist()
+    [[0.0, 1.0, -0.0], [-1.0, 0.0, 0.0]]
+    """
+    x, y, z = float(n[0]), float(n[1]), float(n[2])
+    t1 = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])
+    t1 /= math.sqrt(float(t1 @ t1))
+    a, b, c = float(t1[0]), float(t1[1]), float(t1[2])
+    return np.stack([t1, np.array([y * c - z * b, z * a - x * c, x * b - y * a])])
 
 
 def pose_defect(X: npt.ArrayLike) -> tuple[int, str, str] | None:

@@ -31,7 +31,7 @@ import numpy.typing as npt
 from apo.constants import tol
 from apo.dof import DofGeometry, DofResult
 from apo.errors import InputFormatError
-from apo.spatial import check_pose
+from apo.spatial import check_pose, rotation_angle
 from apo.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -658,7 +658,7 @@ def _relative_twist(x_before: FloatArray, x_after: FloatArray) -> FloatArray:
     """Rotation vector and displacement of the origin of ``X_after inv(X_before)``."""
     rel = x_after @ np.linalg.inv(x_before)
     r = rel[:3, :3]
-    angle = float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = rotation_angle(r)
     w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     s = float(np.linalg.norm(w))
     omega = w * (angle / s) if s > tol.zero_norm else np.zeros(3)
