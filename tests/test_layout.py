@@ -147,8 +147,6 @@ def test_imports_point_down_the_layers(path: Path) -> None:
 MAX_FUNCTION_LINES = 80
 LONG_FUNCTIONS_ALLOWED: dict[str, str] = {
     # split pending (session 2): each owner removes its entry when it splits the function.
-    "io.poses.read_pose_list": "speed: split pending",
-    "io.poses.read_pose_csv": "speed: split pending",
     "perception.track.track_frames": "perception: split pending",
     "report.figures.state_graph_figure": "speed: split pending",
     "sim.execute.run_primitive": "plan: split pending",

@@ -70,6 +70,12 @@ class Tolerances:
         (:func:`apo.spatial.pose_from_twist`, one twist at a time, switches to its first-order
         form only at ``zero_norm``).
 
+    orthogonal_rtol, orthogonal_atol : float
+        A matrix converted to a quaternion (:func:`apo.spatial.quaternions_from_matrices`)
+        is used as it is when its Gram matrix is the identity within these
+        (``numpy.isclose``), else replaced by its nearest rotation first: scipy's
+        ``Rotation.from_matrix`` rule, kept so the quaternions equal scipy's bit for bit.
+
     Model data (exact geometry, rounding only):
 
     rigid_transform : float
@@ -147,6 +153,8 @@ class Tolerances:
     quaternion_zero_norm: float = 1e-9
     division_floor: float = 1e-300
     twist_series_angle: float = 1e-8
+    orthogonal_rtol: float = 1e-5
+    orthogonal_atol: float = 1e-12
     rigid_transform: float = 1e-9
     model_cone: float = 1e-9
     model_cone_merge: float = 1e-7
