@@ -73,15 +73,16 @@ for m in pkgutil.walk_packages(apo.__path__, 'apo.'):
     assert run.returncode == 0, run.stderr[-2000:]
 
 
-def test_one_pose_rule_from_input_to_contacts() -> None:
+def test_one_pose_rule_from_input_to_contacts(tmp_path: Path) -> None:
     # Recognition, the contact search, correction and the transition analysis apply the same
     # rule (apo.spatial.pose_defect, tol.rotation): a rotation block off by 4e-5 (a matrix
     # printed with 5 digits) is accepted by all of them; one off by 1e-3 is refused by all,
-    # as an InputFormatError (a ValueError) naming the pose.
+    # as an InputFormatError (a ValueError) naming the pose. The pose-file writers too.
     import numpy as np
 
     from apo.contact import ContactFinder
     from apo.errors import InputFormatError
+    from apo.io.poses import write_pose_csv
     from apo.recognition import check_sequence
     from apo.shapes import box
     from apo.spatial import check_poses
@@ -90,7 +91,13 @@ def test_one_pose_rule_from_input_to_contacts() -> None:
     for scale, ok in ((1 + 2e-5, True), (1 + 5e-4, False)):
         X = np.stack([np.eye(4)] * 3)
         X[1, :3, :3] *= scale
-        for check in (check_poses, finder.find_batch, lambda x: check_sequence(None, x)):
+        checks = (
+            check_poses,
+            finder.find_batch,
+            lambda x: check_sequence(None, x),
+            lambda x: write_pose_csv(tmp_path / "p.csv", [0.0, 1.0, 2.0], x, units="m"),
+        )
+        for check in checks:
             if ok:
                 check(X)
             else:
