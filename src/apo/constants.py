@@ -128,14 +128,16 @@ class Tolerances:
         A maintaining twist belongs to a rotation axis of a sub-skill when its rotation part
         equals the axis within this (both unit vectors from one DOF analysis).
 
-    task.json (``apo.task``):
+    JSON documents (task.json, motion.json: ``apo.task``, ``apo.jsonform``):
 
-    task_quaternion_norm : float
-        A pose quaternion of task.json is accepted when ``| |q| - 1 |`` is at most this
-        (apo writes full precision; this admits hand-written files with 6-7 digits).
-    task_normal_norm : float
-        A contact normal of task.json is accepted when ``| |n| - 1 |`` is at most this (as
-        loose as ``rotation``: normals printed with 5 significant digits).
+    json_quaternion_norm : float
+        A pose quaternion is accepted when ``| |q| - 1 |`` is at most this (apo writes 9
+        decimals; this admits hand-written files with 6-7 digits). Tighter than
+        ``json_unit_norm`` because an error in ``q`` is an error in the pose itself.
+    json_unit_norm : float
+        A unit vector (contact normal, direction, axis) is accepted when ``| |n| - 1 |`` is
+        at most this, and orthonormal rows when their Gram matrix is the identity within it
+        (as loose as ``rotation``: vectors printed with 5 significant digits).
     """
 
     rank: float = 1e-6
@@ -167,8 +169,8 @@ class Tolerances:
     observed_threshold_fraction: float = 0.035
     subskill_direction: float = 1e-9
     twist_axis_match: float = 1e-6
-    task_quaternion_norm: float = 1e-6
-    task_normal_norm: float = 1e-4
+    json_quaternion_norm: float = 1e-6
+    json_unit_norm: float = 1e-4
 
 
 tol = Tolerances()
