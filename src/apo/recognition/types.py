@@ -193,6 +193,8 @@ class Recognition:
         The pose noise used (estimated from the poses, or given).
     outliers : ndarray of bool, shape (N,)
         Frames taken as outliers (ignored by the segmentation).
+    observed_states : list of ContactState
+        Each distinct observed state as found at its first frame (``observed`` indexes it).
     """
 
     task: TaskModel
@@ -213,6 +215,7 @@ class Recognition:
     X_corrected: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     noise: NoiseEstimate | None = None
     outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    observed_states: list[ContactState] = field(default_factory=list)
 
     @property
     def flags(self) -> list[list[str]]:
