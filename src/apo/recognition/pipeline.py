@@ -242,7 +242,7 @@ def _recognise_once(
     scene = make_scene(grasped, environment, X, threshold, costs, est)
     observed = observe(scene, memoize=memoize, progress=progress)
     tm["contacts"] = time.perf_counter() - t0
-    dists = DistanceCache(grasped, environment, X, scene.theta)
+    dists = DistanceCache(grasped, environment, X, scene.unit)
     first = [s.touching for s in observed.states]
     emission0 = _timed(
         tm,
@@ -260,7 +260,7 @@ def _recognise_once(
     path, obs_c, emission = _timed(tm, "segmentation", segment, scene, an, dists, observed)
     chosen = an.states(observed)
     corrected = _timed(
-        tm, "correction", correct_by_label, grasped, environment, X, chosen, path, scene.theta
+        tm, "correction", correct_by_label, grasped, environment, X, chosen, path, scene.unit
     )
     t4 = time.perf_counter()
     task = build_task(
@@ -322,10 +322,12 @@ def make_scene(
     threshold tells which feature pairs really touch there.
     """
     base = default_threshold(grasped, environment)
+    scale = 0.0
     if threshold is None:
         sd = 0.0 if noise is None else noise.distance
         floor = base if noise is None else NOISE_FLOOR_SHARE * base
         threshold = max(floor, NOISE_THRESHOLD_FACTOR * sd)
+        scale = max(base, threshold)
     finder = ContactFinder(grasped, environment, threshold=threshold)
     exact = ContactFinder(grasped, environment)
     out = (
@@ -333,7 +335,7 @@ def make_scene(
         if noise is None
         else outlier_frames(grasped, X, noise, floor=base)
     )
-    return Scene(grasped, environment, X, finder, exact, costs, out)
+    return Scene(grasped, environment, X, finder, exact, costs, out, scale)
 
 
 def segment(
