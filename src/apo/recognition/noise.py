@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from apo.contact import ContactElement, element_residuals
+from apo.contact import ContactElement
+from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
 from apo.recognition.types import BoolArray, FloatArray
 
@@ -187,7 +188,8 @@ def contact_noise(
     ``elements[t]`` are the contact elements of the state chosen at frame ``t`` (empty:
     free, or a frame to ignore). At most ``samples`` of the frames in contact, evenly
     spread, give their element residuals ``f_i`` at the observed pose (signed distances
-    along the contact normals, ``apo.contact.element_residuals``; zero when the contact
+    along the contact normals, ``apo.contact.element_residuals``, batched per state by
+    ``apo.correction.ContactConstraints``; zero when the contact
     holds); the noise is ``1.4826 median |f_i|``, the standard deviation of Gaussian
     residuals, robust to the few frames whose chosen state is wrong. Fewer than 8
     residuals give 0.
@@ -195,7 +197,15 @@ def contact_noise(
     frames = [t for t, els in enumerate(elements) if els]
     if len(frames) > samples:
         frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, samples)]
-    res = [element_residuals(grasped, environment, X_EG[t], elements[t])[0] for t in frames]
+    groups: dict[tuple[object, ...], list[int]] = {}
+    for t in frames:
+        groups.setdefault(tuple(e.key for e in elements[t]), []).append(t)
+    # one batched evaluation per state (apo.correction.ContactConstraints: the rows and signs
+    # of apo.contact.element_residuals)
+    res = [
+        ContactConstraints(grasped, environment, elements[ts[0]]).residuals(X_EG[ts])[0].ravel()
+        for ts in groups.values()
+    ]
     f = np.concatenate(res) if res else np.zeros(0)
     if len(f) < 8:
         return 0.0
