@@ -197,8 +197,9 @@ def recognize_frames(
 
 #: With a noise level (estimated or given), the threshold is ``NOISE_THRESHOLD_FACTOR``
 #: deviations of a contact distance, but at least this share of :func:`default_threshold`
-#: (which stays the threshold when no noise is known).
-NOISE_FLOOR_SHARE = 0.25
+#: (which stays the threshold when no noise is known). 1: the default is the floor
+#: (docs/recognition.md says why not a quarter, which was tried).
+NOISE_FLOOR_SHARE = 1.0
 
 #: Passes of recognition again with the contact residuals' noise (drift), at most.
 CONTACT_PASSES = 2
