@@ -18,10 +18,10 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from apo.constants import UNITS
+from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.jsonform import JsonReader, rounded, rounded_list
+from apo.jsonform import JsonReader, rounded, rounded_list, rounded_rows
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -351,7 +351,7 @@ def element_to_dict(e: Element, k: float) -> dict[str, Any]:
         "grasped": [e.grasped[0], int(e.grasped[1])],
         "environment": [e.environment[0], int(e.environment[1])],
         "point": rounded_list(e.point, k),
-        "normals": [rounded_list(n) for n in np.asarray(e.normals).reshape(-1, 3)],
+        "normals": rounded_rows(e.normals),
     }
 
 
@@ -372,7 +372,7 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
                 "direction": rounded_list(np.zeros(3) if u.direction is None else u.direction),
                 "point": None if u.point is None else rounded_list(u.point, k),
                 "source": u.source,
-                "subspace": [rounded_list(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
+                "subspace": rounded_rows(u.subspace),
             }
             for u in t.subskills
         ],
@@ -503,7 +503,7 @@ def _read_state(rd: JsonReader, sd_: Any, w: str, k: float, ids: set[str], prev_
     pd = rd.obj(rd.get(sd, "pose", w), f"{w}.pose")
     pos = rd.vector(rd.get(pd, "position", f"{w}.pose"), f"{w}.pose.position", 3) * k
     quat = rd.vector(rd.get(pd, "quaternion", f"{w}.pose"), f"{w}.pose.quaternion", 4)
-    if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-6:
+    if abs(float(np.linalg.norm(quat)) - 1.0) > tol.json_quaternion_norm:
         raise rd.fail(f"{w}.pose.quaternion", f"not a unit quaternion: {quat.tolist()}")
     pf = sd.get("pose_frame")
     same_as = sd.get("same_as")
@@ -548,7 +548,7 @@ def element_from_dict(rd: JsonReader, ed_: Any, we: str, k: float) -> Element:
     if not normals_l:
         raise rd.fail(f"{we}.normals", "expected at least one normal")
     normals = np.array([rd.vector(n, f"{we}.normals[{m}]", 3) for m, n in enumerate(normals_l)])
-    if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > 1e-4):
+    if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > tol.json_unit_norm):
         raise rd.fail(f"{we}.normals", "normals must be unit vectors")
     return Element(
         kind=rd.string(rd.get(ed, "kind", we), f"{we}.kind", KINDS),
