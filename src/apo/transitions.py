@@ -21,7 +21,6 @@ choices made where the paper is silent.
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Iterator, Mapping, Sequence, Set
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -844,8 +843,8 @@ def _push_type(ctx: _Ctx, sub: FloatArray) -> str | None:
 #: Smallest demonstrated motion along a slide's direction that fixes its sign: the turn
 #: (radians) about a rotational slide's axis, the displacement (metres) of the contact
 #: centroid along a translational slide's direction, between the two states' poses.
-SLIDE_MIN_ROTATION = math.radians(2.0)
-SLIDE_MIN_TRANSLATION = 0.002
+SLIDE_MIN_ROTATION = tol.slide_motion_rotation
+SLIDE_MIN_TRANSLATION = tol.slide_motion_translation
 
 
 def _slide_motion(space: str, direction: FloatArray, ctx: _Ctx) -> float:
