@@ -27,7 +27,7 @@ from apo.perception.track import track_frames
 @pytest.fixture(scope="module")
 def peg_view() -> dict:
     cam, X_CE = example_camera(320, 240)
-    peg, slot = peg_and_slot()
+    peg, _ = peg_and_slot()
     X = X_CE @ insertion_trajectory(5)[1][0]
     depth, _ = rasterize(transform_points(X, peg[0]), peg[1], cam)
     rng = np.random.default_rng(0)
