@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import TrackingLostError
-from apo.perception.frames import Camera, FrameSource, open_frames
+from apo.perception.frames import Camera, FrameSource, masked_median, open_frames
 from apo.perception.register import (
     ModelCloud,
     Registration,
@@ -254,6 +254,10 @@ class _Segmenter:
         self.noise = noise
         _, bg_depth = src.background()
         self.background = bg_depth
+        # The difference of a depth and the background's: sqrt(1 + pi / 2n) sigma for the
+        # median of n background frames (sqrt(2) for one).
+        n_bg = max(int(getattr(src, "background_count", 1)), 1)
+        self.difference = float(np.sqrt(1.0 + (1.0 if n_bg == 1 else np.pi / (2 * n_bg))))
         d0 = bg_depth if bg_depth is not None else src.depth(0)
         pts = self.camera.backproject(d0)
         self.plane: Plane | None = None
@@ -290,8 +294,8 @@ class _Segmenter:
             fg = foreground_from_plane(
                 depth, cam, self.plane, threshold=self.threshold(depth, t, 1)
             )
-        if bg is not None:  # the difference of two noisy depths: sqrt(2) sigma
-            thr = self.threshold(depth, t, float(np.sqrt(2.0)))
+        if bg is not None:  # the difference of two noisy depths
+            thr = self.threshold(depth, t, self.difference)
             fg &= foreground_from_background(depth, bg, threshold=thr)
         # The colour test only where the depth found something (a fraction of the pixels).
         out = np.zeros(fg.shape, dtype=bool)
@@ -334,21 +338,10 @@ def _environment_points(
         depths[k] = depth
     static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
     # Per-pixel median depth of the static pixels (noise averaged; passages removed).
-    median = _masked_median(depths, masks & static[None])
-    median_all = _masked_median(depths, depths > 0)  # for the surface check
+    median = masked_median(depths, masks & static[None])
+    median_all = masked_median(depths, depths > 0)  # for the surface check
     env = _largest_component(static & (median > 0))
     return src.camera.backproject(median, env), median_all
-
-
-def _masked_median(
-    values: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_]
-) -> npt.NDArray[np.float32]:
-    """Per-pixel median of ``values`` (N, H, W) over the frames where ``mask``; 0 if none."""
-    stack = np.sort(np.where(mask, values, np.float32(np.inf)), axis=0)
-    count = mask.sum(axis=0)
-    idx = np.maximum(count - 1, 0) // 2
-    med = np.take_along_axis(stack, idx[None], axis=0)[0]
-    return np.where(count > 0, med, 0.0).astype(np.float32)
 
 
 def _read(src: FrameSource, i: int) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
