@@ -77,12 +77,19 @@ def test_real_demonstration_end_to_end(real_data_dir, tmp_path, capsys):
     from apo.task import task_from_dict
 
     out = tmp_path / "out"
-    code = main(["analyze", str(real_data_dir / "peg_in_hole.pose.list"), "--out", str(out)])
+    demo = str(real_data_dir / "peg_in_hole.pose.list")
+    code = main(["analyze", demo, "--out", str(out), "--plot"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "state" in captured.out and "(1) A->B" in captured.out
     data = json.loads((out / "task.json").read_text())
     assert (out / "dof.png").read_bytes()[:4] == b"\x89PNG"
+    # dof.png is opt-in (issue 9: every default output must be fast); --no-plot still works
+    for flags, png in (([], False), (["--plot", "--no-plot"], False), (["--no-plot"], False)):
+        again = tmp_path / f"again{len(flags)}"
+        assert main(["analyze", demo, "--out", str(again), "--no-report", *flags]) == 0
+        assert (again / "dof.png").exists() == png and (again / "task.json").exists()
+    capsys.readouterr()
     task = task_from_dict(data, source="task.json")
     assert data["units"] == "mm" and data["n_frames"] == 41
     assert data["models"]["grasped"]["sha256"] == sha256_of(real_data_dir / "peg.step")

@@ -430,6 +430,7 @@ def test_killing_apo_analyze_at_random_leaves_a_whole_set(tmp_path: Path) -> Non
                 str(out),
                 *models,
                 "--no-report",
+                "--plot",
             ]
         )
         t0 = time.monotonic()

@@ -17,15 +17,17 @@ import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import highspy
 import numpy as np
 import numpy.typing as npt
 
 from apo.constants import Tolerances, tol
 from apo.errors import InputFormatError
 from apo.typing import BoolArray, FloatArray
+
+if TYPE_CHECKING:
+    import highspy
 
 
 @dataclass(frozen=True)
@@ -347,6 +349,8 @@ def _quiet_highs() -> highspy.Highs:
     The banner goes to the process's file descriptor 1 from C++ before any option can be
     set, so descriptor 1 is pointed at ``os.devnull`` for the constructor only.
     """
+    import highspy  # imported on use (HiGHS only solves the LPs no closed form covers)
+
     sys.stdout.flush()
     saved = os.dup(1)
     try:
@@ -385,6 +389,8 @@ def _solve_lp(
     feasibility: float,
 ) -> FloatArray | None:
     """Minimise ``cost . x`` s.t. ``row_lower <= a x <= row_upper``, bounds; None if not optimal."""
+    import highspy
+
     n_row, n_col = a.shape
     h = _highs()
     h.setOptionValue("primal_feasibility_tolerance", feasibility)
@@ -425,7 +431,7 @@ def _support_lp(z: FloatArray, eta: float) -> BoolArray:
     and the cone is scale-invariant); ``i`` is taken in the support when ``t_i > 1/2``.
     """
     n_col, k = z.shape
-    inf = highspy.kHighsInf
+    inf = float("inf")  # = highspy.kHighsInf
     x_opt = _solve_lp(
         np.concatenate([np.zeros(k), -np.ones(n_col)]),
         np.concatenate([np.full(k, -inf), np.zeros(n_col)]),
@@ -718,7 +724,7 @@ def _detaching_direction(
         y, *_ = np.linalg.lstsq(a, np.ones(a.shape[0]), rcond=None)
         u = t_det.T @ y
         return np.asarray(u / np.linalg.norm(u), dtype=np.float64)
-    inf = highspy.kHighsInf
+    inf = float("inf")  # = highspy.kHighsInf
     x = _solve_lp(
         a.sum(axis=0),
         np.full(d, -inf),

@@ -23,9 +23,6 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from apo.constants import tol
 from apo.errors import GeometryError
@@ -324,14 +321,60 @@ def _check_mesh_arrays(
     return V, T
 
 
+#: Meshes with at most this many vertices find their close pairs by all-pairs distances
+#: (numpy), larger ones with a k-d tree (scipy, imported then: 0.1-0.3 s).
+_DENSE_MERGE = 2048
+
+
+def _close_pairs(V: FloatArray, dist: float) -> IntArray:
+    """Pairs ``(i, j)``, ``i < j``, of points within ``dist``, sorted (``cKDTree.query_pairs``)."""
+    if len(V) > _DENSE_MERGE:
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(V).query_pairs(dist, output_type="ndarray")
+        return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs
+    d2 = np.sum((V[:, None, :] - V[None, :, :]) ** 2, axis=2)
+    i, j = np.nonzero(np.triu(d2 <= dist * dist, 1))
+    return np.stack([i, j], axis=1).astype(np.int64)
+
+
+def connected_components(n: int, a: IntArray, b: IntArray) -> tuple[int, IntArray]:
+    """Return the connected components of the graph on ``n`` nodes with edges ``(a[k], b[k])``.
+
+    Returns the count and each node's label, labels numbered in the order of each
+    component's smallest node (as ``scipy.sparse.csgraph.connected_components`` numbers
+    them, also for ``directed=True, connection="weak"``). Numpy only: min-label
+    propagation with pointer jumping, so loading a model does not import scipy.
+
+    Examples
+    --------
+    >>> connected_components(5, np.array([3, 1]), np.array([4, 0]))[1].tolist()
+    [0, 0, 1, 2, 2]
+    """
+    lab = np.arange(n, dtype=np.int64)
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    while len(a):
+        la, lb = lab[a], lab[b]
+        if np.array_equal(la, lb):
+            break
+        m = np.minimum(la, lb)
+        np.minimum.at(lab, la, m)  # hook each root onto the smaller label
+        np.minimum.at(lab, lb, m)
+        while True:  # pointer jumping: every node to its root
+            nxt = lab[lab]
+            if np.array_equal(nxt, lab):
+                break
+            lab = nxt
+    roots, labels = np.unique(lab, return_inverse=True)
+    return len(roots), labels.reshape(-1).astype(np.int64)
+
+
 def _merge_vertices(V: FloatArray, T: IntArray, dist: float) -> tuple[FloatArray, IntArray]:
     """Merge vertices closer than ``dist`` (transitively); keep the first one's position."""
-    pairs = cKDTree(V).query_pairs(dist, output_type="ndarray")
+    pairs = _close_pairs(V, dist)
     if len(pairs) == 0:
         return V, T
-    n = len(V)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
+    _, labels = connected_components(len(V), pairs[:, 0], pairs[:, 1])
     # Relabel by first occurrence so that the order is that of the input.
     _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
     order = np.argsort(first, kind="stable")
@@ -387,12 +430,9 @@ def _check_closed_manifold(V: FloatArray, T: IntArray, label: str) -> IntArray:
     # the corner whose outgoing half-edge is the twin of c's incoming half-edge.
     incoming = (np.arange(len(he)) // 3) * 3 + (np.arange(len(he)) + 2) % 3
     nxt = twin[incoming]
-    m = len(he)
-    graph = coo_matrix((np.ones(m), (np.arange(m), nxt)), shape=(m, m))
-    n_cycles, _ = connected_components(graph, directed=True, connection="weak")
+    n_cycles, cyc = connected_components(len(he), np.arange(len(he)), nxt)
     n_used = len(np.unique(T))
     if n_cycles != n_used:
-        cyc = connected_components(graph, directed=True, connection="weak")[1]
         per_vertex = np.zeros(len(V), dtype=np.int64)
         first_of_cycle = np.unique(cyc, return_index=True)[1]
         np.add.at(per_vertex, he[first_of_cycle, 0], 1)
@@ -441,9 +481,7 @@ def _coplanar_groups(
         (dots > 0.5) & (np.minimum(d12, d21) <= tol.coplanar_distance * scale)
     )
     n_tri = len(T)
-    graph = coo_matrix((np.ones(int(same.sum())), (t1[same], t2[same])), shape=(n_tri, n_tri))
-    _, labels = connected_components(graph, directed=False)
-    labels = labels.astype(np.int64)
+    _, labels = connected_components(n_tri, t1[same], t2[same])
 
     n_absorbed = int(degenerate.sum())
     if n_absorbed:

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from apo.constants import tol
 from apo.errors import InputFormatError
@@ -47,19 +46,91 @@ def skew(v: npt.ArrayLike) -> FloatArray:
 
 def matrix_from_quaternion(q: npt.ArrayLike) -> FloatArray:
     """Return the rotation matrix of a quaternion ``(qw, qx, qy, qz)``."""
-    w, x, y, z = check_quaternion(q)
-    return np.asarray(Rotation.from_quat([x, y, z, w]).as_matrix(), dtype=float)
+    out: FloatArray = matrices_from_quaternions(check_quaternion(q)[None])[0]
+    return out
+
+
+def matrices_from_quaternions(q: npt.ArrayLike) -> FloatArray:
+    """Return the rotation matrices (N, 3, 3) of quaternions ``(qw, qx, qy, qz)`` (N, 4).
+
+    Each quaternion is normalised first. Numpy only, the same numbers as
+    ``scipy.spatial.transform.Rotation.from_quat(...).as_matrix()`` bit for bit.
+
+    Examples
+    --------
+    >>> matrices_from_quaternions([[2.0, 0.0, 0.0, 0.0]])[0].tolist()
+    [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    a = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    w, x, y, z = a[:, 0], a[:, 1], a[:, 2], a[:, 3]
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    M = np.empty((len(a), 3, 3))
+    M[:, 0, 0] = x2 - y2 - z2 + w2
+    M[:, 1, 0] = 2 * (xy + zw)
+    M[:, 2, 0] = 2 * (xz - yw)
+    M[:, 0, 1] = 2 * (xy - zw)
+    M[:, 1, 1] = -x2 + y2 - z2 + w2
+    M[:, 2, 1] = 2 * (yz + xw)
+    M[:, 0, 2] = 2 * (xz + yw)
+    M[:, 1, 2] = 2 * (yz - xw)
+    M[:, 2, 2] = -x2 - y2 + z2 + w2
+    return M
 
 
 def quaternion_from_matrix(R: npt.ArrayLike) -> FloatArray:
     """Return the quaternion ``(qw, qx, qy, qz)`` of a rotation matrix, with ``qw >= 0``."""
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
-    q = np.array([w, x, y, z])
-    return -q if w < 0 else q
+    out: FloatArray = quaternions_from_matrices(np.asarray(R, dtype=float)[None])[0]
+    return out
+
+
+def quaternions_from_matrices(R: npt.ArrayLike) -> FloatArray:
+    """Return the quaternions ``(qw, qx, qy, qz)``, ``qw >= 0``, of rotation matrices (N, 3, 3).
+
+    Numpy only, the same numbers as ``scipy.spatial.transform.Rotation.from_matrix`` bit
+    for bit (Shepperd's method on the largest of the trace and the diagonal; a matrix whose
+    Gram matrix is not the identity within 1e-12 is first replaced by its nearest rotation
+    ``U @ Vt``), without importing scipy.
+
+    Examples
+    --------
+    >>> quaternions_from_matrices(np.eye(3)[None]).tolist()
+    [[1.0, 0.0, 0.0, 0.0]]
+    """
+    M = np.array(R, dtype=np.float64).reshape(-1, 3, 3)
+    gram = M @ M.transpose(0, 2, 1)
+    ortho = np.all(np.isclose(gram, np.eye(3), rtol=1e-5, atol=1e-12), axis=(1, 2))
+    if not ortho.all():
+        U, _, Vt = np.linalg.svd(M[~ortho], full_matrices=False)
+        M[~ortho] = U @ Vt
+    tr = M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2]
+    choice = np.argmax(np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2], tr], axis=1), axis=1)
+    q = np.empty((len(M), 4))  # x, y, z, w as scipy computes them
+    for c in range(3):
+        m = choice == c
+        i, j, k, S = c, (c + 1) % 3, (c + 2) % 3, M[m]
+        q[m, i] = 1 - tr[m] + 2 * S[:, i, i]
+        q[m, j] = S[:, j, i] + S[:, i, j]
+        q[m, k] = S[:, k, i] + S[:, i, k]
+        q[m, 3] = S[:, k, j] - S[:, j, k]
+    m = choice == 3
+    S = M[m]
+    q[m, 0] = S[:, 2, 1] - S[:, 1, 2]
+    q[m, 1] = S[:, 0, 2] - S[:, 2, 0]
+    q[m, 2] = S[:, 1, 0] - S[:, 0, 1]
+    q[m, 3] = 1 + tr[m]
+    n = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3])
+    q = q[:, [3, 0, 1, 2]] / n[:, None]
+    q[q[:, 0] < 0] *= -1.0
+    return q
 
 
 def matrix_from_axis_angle(axis: npt.ArrayLike, angle: float) -> FloatArray:
     """Return the rotation by ``angle`` (rad) about ``axis`` (normalised here)."""
+    from scipy.spatial.transform import Rotation
+
     a = np.asarray(axis, dtype=float)
     n = float(np.linalg.norm(a))
     if n < 1e-12:
@@ -122,7 +193,6 @@ def pose_from_twist(twist: npt.ArrayLike) -> FloatArray:
         R = np.eye(3) + W
         V = np.eye(3) + 0.5 * W
     else:
-        R = np.asarray(Rotation.from_rotvec(w).as_matrix(), dtype=float)
         A = np.sin(th) / th
         B = (1 - np.cos(th)) / th**2
         C = (1 - A) / th**2

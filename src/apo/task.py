@@ -23,7 +23,7 @@ import numpy.typing as npt
 from apo.constants import UNITS
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
+from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
 
@@ -282,7 +282,9 @@ def _r(x: float, nd: int = 9) -> float:
 
 
 def _vec(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
-    return [_r(v * scale) for v in np.asarray(a, dtype=float).ravel()]
+    """``[_r(v * scale) for v in a]``, on plain floats (numpy scalars cost ten times more)."""
+    arr = np.asarray(a, dtype=float).ravel()
+    return [round(v, 9) for v in (arr if scale == 1.0 else arr * scale).tolist()]
 
 
 def task_to_dict(task: TaskModel) -> dict[str, Any]:
@@ -300,7 +302,8 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
     if task.units not in UNITS:
         raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
     k = 1.0 / UNITS[task.units]
-    states = [_state_to_dict(st, k) for st in task.states]
+    quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in task.states]))
+    states = [_state_to_dict(st, k, q) for st, q in zip(task.states, quats, strict=True)]
     transitions = [_transition_to_dict(t, k) for t in task.transitions]
     rejected = [
         {
@@ -330,9 +333,9 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
     }
 
 
-def _state_to_dict(s: State, k: float) -> dict[str, Any]:
-    """JSON form of a state, lengths times ``k`` (metres to the task's units)."""
-    p, q = position_quaternion_from_pose(s.X_EG)
+def _state_to_dict(s: State, k: float, q: FloatArray) -> dict[str, Any]:
+    """JSON form of a state, lengths times ``k`` (metres to the task's units), quaternion q."""
+    p = np.asarray(s.X_EG, dtype=float)[:3, 3]
     return {
         "id": s.id,
         "frames": [int(s.frames[0]), int(s.frames[1])],

@@ -56,9 +56,10 @@ def register(subparsers: Any) -> None:
         description=(
             "Recognise a demonstration: contact states, DOF, transitions, sub-skills and "
             "critical transitions. Prints the Fig. 25-style table and writes task.json, "
-            "frames.csv and dof.png to --out. DEMO may also be a frames folder (see "
-            "docs/perception.md): it is tracked first (as by apo track, which needs "
-            "--grasped and --environment), and the poses are written to --out as poses.csv."
+            "frames.csv and report.html (and with --plot dof.png) to --out. DEMO may also "
+            "be a frames folder (see docs/perception.md): it is tracked first (as by apo "
+            "track, which needs --grasped and --environment), and the poses are written "
+            "to --out as poses.csv."
         ),
     )
     p.add_argument(
@@ -88,7 +89,20 @@ def register(subparsers: Any) -> None:
         help="pose noise per axis: position standard deviation in --units and rotation in "
         "degrees (one number: both; default: estimated from the poses)",
     )
-    p.add_argument("--no-plot", action="store_true", help="do not write dof.png")
+    p.add_argument(
+        "--plot",
+        dest="plot",
+        action="store_true",
+        default=False,
+        help="also write dof.png, the DOF indices over time (matplotlib; report.html has the "
+        "same timeline, interactive)",
+    )
+    p.add_argument(
+        "--no-plot",
+        dest="plot",
+        action="store_false",
+        help="do not write dof.png (the default; kept for scripts written before --plot)",
+    )
     p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
     from apo.cli.track import add_tracking_options
 
@@ -208,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     if not demo.is_file() and not demo.is_dir():
         raise InputFormatError(f"{demo}: file not found")
     out = Path(args.out) if args.out else Path(demo.name.split(".")[0] + "-task")
-    worker = None if args.no_plot else PlotWorker()
+    worker = PlotWorker() if args.plot else None
     try:
         with OutputSet(out, label="--out") as outs:  # checked and locked before the work
             written = _run(args, demo, outs, worker)
@@ -271,7 +285,7 @@ def _run(
     return write_recognition(
         outs,
         rec,
-        plot=not args.no_plot,
+        plot=args.plot,
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),

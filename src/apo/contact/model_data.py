@@ -11,14 +11,17 @@ from __future__ import annotations
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from apo.contact._arrays import _EMPTY_3, _EMPTY_I, _csr, _dedupe, _plane_basis
 from apo.contact.elements import _CODE, Feature
 from apo.geometry import Polyhedron, local_solid
 from apo.typing import FloatArray, IntArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -199,6 +202,8 @@ class _ModelData:
 
     def trees(self) -> tuple[cKDTree, cKDTree, IntArray, float, cKDTree, IntArray, float]:
         if self._trees is None:
+            from scipy.spatial import cKDTree  # imported on use: large models only
+
             h = self.spacing
             tri_pts, tri_own, tri_r = _sample_triangles(self.TA, self.TB, self.TC, h)
             e_pts, e_own, e_r = _sample_segments(self.E0, self.E1, h)

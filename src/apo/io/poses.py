@@ -55,8 +55,8 @@ import numpy.typing as npt
 from apo.constants import UNITS, tol
 from apo.errors import InputFormatError
 from apo.spatial import (
+    matrices_from_quaternions,
     matrix_from_axis_angle,
-    matrix_from_quaternion,
     quaternion_from_matrix,
 )
 from apo.typing import FloatArray, IntArray
@@ -263,50 +263,86 @@ def read_pose_list(
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise InputFormatError(f"{path}: fps must be positive, got {fps}")
     lines = _read_text(path).splitlines()
+    models, n_scenes, i = _pose_list_header(path, lines)
+    scenes = _scene_lines(path, lines, i, n_scenes)
+    n = len(scenes)
+    first = np.array([scene[0] + 1 for scene in scenes], dtype=np.int64)
+    parsed = _scene_poses_fast(lines, scenes, len(models), scale)
+    if parsed is None:  # something is wrong: the line-by-line reader names it
+        parsed = _scene_poses(lines, scenes, len(models), scale, lambda j: _where(path, j))
+    tags, x_c = parsed
+    x_eg = np.einsum("nij,njk->nik", _invert_all(x_c[:, 1]), x_c[:, 0])
+    rate = 1.0 if fps is None else float(fps)
+    return Demonstration(
+        times=np.arange(n, dtype=np.float64) / rate,
+        X_EG=x_eg,
+        units=units,
+        source=path,
+        grasped_path=models[0],
+        environment_path=models[1],
+        model_paths=tuple(models),
+        X_C=x_c,
+        tags=tags,
+        lines=first,
+        fps=rate,
+    )
+
+
+def _where(path: Path, i: int) -> str:
+    return f"{path}: line {i + 1}"
+
+
+def _expect_header(
+    path: Path, lines: list[str], i: int, pattern: re.Pattern[str], name: str
+) -> tuple[int, int]:
+    """Parse the ``name: N`` header at or after line ``i``; return N and the next line."""
     n_lines = len(lines)
+    while i < n_lines and not lines[i].strip():
+        i += 1
+    if i >= n_lines:
+        raise InputFormatError(f"{path}: line {i + 1}: expected '{name}: N', found end of file")
+    m = pattern.match(lines[i])
+    if m is None:
+        raise InputFormatError(f"{_where(path, i)}: expected '{name}: N', got {_excerpt(lines[i])}")
+    try:
+        n = int(m.group(1))
+    except ValueError:
+        raise InputFormatError(
+            f"{_where(path, i)}: '{name}' must be a whole number, got {m.group(1)!r}"
+        ) from None
+    if n < 0:
+        raise InputFormatError(f"{_where(path, i)}: '{name}' must not be negative, got {n}")
+    return n, i + 1
 
-    def where(i: int) -> str:
-        return f"{path}: line {i + 1}"
 
-    def expect_header(i: int, pattern: re.Pattern[str], name: str) -> tuple[int, int]:
-        while i < n_lines and not lines[i].strip():
-            i += 1
-        if i >= n_lines:
-            raise InputFormatError(f"{path}: line {i + 1}: expected '{name}: N', found end of file")
-        m = pattern.match(lines[i])
-        if m is None:
-            raise InputFormatError(f"{where(i)}: expected '{name}: N', got {_excerpt(lines[i])}")
-        try:
-            n = int(m.group(1))
-        except ValueError:
-            raise InputFormatError(
-                f"{where(i)}: '{name}' must be a whole number, got {m.group(1)!r}"
-            ) from None
-        if n < 0:
-            raise InputFormatError(f"{where(i)}: '{name}' must not be negative, got {n}")
-        return n, i + 1
-
-    n_models, i = expect_header(0, _HEADER_MODELS, "No of Models")
+def _pose_list_header(path: Path, lines: list[str]) -> tuple[list[Path], int, int]:
+    """Return the model paths, the announced number of scenes and the next line."""
+    n_lines = len(lines)
+    n_models, i = _expect_header(path, lines, 0, _HEADER_MODELS, "No of Models")
     if n_models < 2:
         raise InputFormatError(
-            f"{where(i - 1)}: need at least 2 models (grasped, environment), got {n_models}"
+            f"{_where(path, i - 1)}: need at least 2 models (grasped, environment), got {n_models}"
         )
     models: list[Path] = []
     while len(models) < n_models:
         if i >= n_lines or not lines[i].strip() or _HEADER_SCENES.match(lines[i]):
             raise InputFormatError(
-                f"{where(min(i, n_lines - 1))}: expected {n_models} model paths, found "
+                f"{_where(path, min(i, n_lines - 1))}: expected {n_models} model paths, found "
                 f"{len(models)}"
             )
         models.append(_model_path(lines[i], path.parent))
         i += 1
     if i < n_lines and lines[i].strip() and not _HEADER_SCENES.match(lines[i]):
         raise InputFormatError(
-            f"{where(i)}: expected {n_models} model paths, found more: {_excerpt(lines[i])}"
+            f"{_where(path, i)}: expected {n_models} model paths, found more: {_excerpt(lines[i])}"
         )
-    n_scenes, i = expect_header(i, _HEADER_SCENES, "No of Scenes")
+    n_scenes, i = _expect_header(path, lines, i, _HEADER_SCENES, "No of Scenes")
+    return models, n_scenes, i
 
-    # scenes: runs of non-blank lines
+
+def _scene_lines(path: Path, lines: list[str], i: int, n_scenes: int) -> list[list[int]]:
+    """Return the scenes from line ``i`` on (runs of non-blank lines), as many as announced."""
+    n_lines = len(lines)
     scenes: list[list[int]] = []
     current: list[int] = []
     for j in range(i, n_lines):
@@ -324,31 +360,10 @@ def read_pose_list(
         )
     if len(scenes) != n_scenes:
         raise InputFormatError(
-            f"{where(scenes[-1][0] if len(scenes) > n_scenes else n_lines - 1)}: expected "
-            f"{n_scenes} scenes ('No of Scenes: {n_scenes}'), found {len(scenes)}"
+            f"{_where(path, scenes[-1][0] if len(scenes) > n_scenes else n_lines - 1)}: "
+            f"expected {n_scenes} scenes ('No of Scenes: {n_scenes}'), found {len(scenes)}"
         )
-
-    n = len(scenes)
-    first = np.array([scene[0] + 1 for scene in scenes], dtype=np.int64)
-    parsed = _scene_poses_fast(lines, scenes, n_models, scale)
-    if parsed is None:  # something is wrong: the line-by-line reader names it
-        parsed = _scene_poses(lines, scenes, n_models, scale, where)
-    tags, x_c = parsed
-    x_eg = np.einsum("nij,njk->nik", _invert_all(x_c[:, 1]), x_c[:, 0])
-    rate = 1.0 if fps is None else float(fps)
-    return Demonstration(
-        times=np.arange(n, dtype=np.float64) / rate,
-        X_EG=x_eg,
-        units=units,
-        source=path,
-        grasped_path=models[0],
-        environment_path=models[1],
-        model_paths=tuple(models),
-        X_C=x_c,
-        tags=tags,
-        lines=first,
-        fps=rate,
-    )
+    return scenes
 
 
 def _scene_poses(
@@ -469,52 +484,97 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
     """
     path = Path(path)
     scale = _scale(units, str(path))
-    text = _read_text(path)
+    names, rows = _csv_header(path, _csv_rows(path))
+    width = len(names)
+    table = _csv_table(rows, width)
+    if table is None:  # something is wrong: the row-by-row reader names it
+        table = _csv_table_checked(path, rows, names)
+    lines = np.array([lineno for lineno, _ in rows], dtype=np.int64)
+    q = table[:, 4:8]
+    _warn_quaternion_norms(path, np.linalg.norm(q, axis=1), lines)
+    x_eg = np.zeros((len(rows), 4, 4))
+    x_eg[:, :3, :3] = matrices_from_quaternions(q)
+    x_eg[:, :3, 3] = table[:, 1:4] * scale
+    x_eg[:, 3, 3] = 1.0
+    return Demonstration(
+        times=table[:, 0].copy(),
+        X_EG=x_eg,
+        units=units,
+        source=path,
+        extra={names[j]: table[:, j].copy() for j in range(8, width)},
+        lines=lines,
+    )
+
+
+def _csv_rows(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, stripped fields) of every row that is not blank or a ``#`` comment."""
     rows: list[tuple[int, list[str]]] = []
-    for lineno, fields in enumerate(csv.reader(io.StringIO(text)), start=1):
+    for lineno, fields in enumerate(csv.reader(io.StringIO(_read_text(path))), start=1):
         if not fields or all(not f.strip() for f in fields) or fields[0].lstrip().startswith("#"):
             continue
         rows.append((lineno, [f.strip() for f in fields]))
     if not rows:
         raise InputFormatError(f"{path}: no rows (empty sequence)")
-    names: list[str]
+    return rows
+
+
+def _csv_header(
+    path: Path, rows: list[tuple[int, list[str]]]
+) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """Return the column names (the header's, or ``t..qz, col8, ...``) and the data rows."""
     head_line, head = rows[0]
     try:
         float(head[0])
-        has_header = False
-    except ValueError:
-        has_header = True
-    if has_header:
+    except ValueError:  # a header
         names = [h.lower() for h in head]
         if tuple(names[:8]) != CSV_COLUMNS:
             raise InputFormatError(
                 f"{path}: line {head_line}: header must begin with {','.join(CSV_COLUMNS)}, "
                 f"got {_excerpt(','.join(head))}"
-            )
+            ) from None
         names = names[:8] + head[8:]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise InputFormatError(
                 f"{path}: line {head_line}: repeated column names "
                 f"{_excerpt(str(sorted(dup)), quote=False)}"
-            )
-        rows = rows[1:]
-        if not rows:
-            raise InputFormatError(f"{path}: header only, no rows (empty sequence)")
-    else:
-        if len(head) < 8:
-            raise InputFormatError(
-                f"{path}: line {head_line}: expected at least 8 columns "
-                f"{','.join(CSV_COLUMNS)}, got {len(head)}"
-            )
-        names = [*CSV_COLUMNS, *(f"col{j}" for j in range(8, len(head)))]
+            ) from None
+        if len(rows) == 1:
+            raise InputFormatError(f"{path}: header only, no rows (empty sequence)") from None
+        return names, rows[1:]
+    if len(head) < 8:
+        raise InputFormatError(
+            f"{path}: line {head_line}: expected at least 8 columns "
+            f"{','.join(CSV_COLUMNS)}, got {len(head)}"
+        )
+    return [*CSV_COLUMNS, *(f"col{j}" for j in range(8, len(head)))], rows
+
+
+def _csv_table(rows: list[tuple[int, list[str]]], width: int) -> FloatArray | None:
+    """Every row as floats (N, width) in one numpy pass; None if anything is off.
+
+    Off: a row of another width, a field that is not a number, a non-finite number among
+    the first 8 columns, a zero quaternion, or time stamps that do not strictly increase.
+    """
+    if any(len(fields) != width for _, fields in rows):
+        return None
+    try:
+        table = np.array([fields for _, fields in rows], dtype=np.float64)
+    except ValueError:
+        return None
+    if not np.isfinite(table[:, :8]).all():
+        return None
+    if np.any(np.linalg.norm(table[:, 4:8], axis=1) < 1e-9) or np.any(np.diff(table[:, 0]) <= 0):
+        return None
+    return table.reshape(len(rows), width)
+
+
+def _csv_table_checked(
+    path: Path, rows: list[tuple[int, list[str]]], names: list[str]
+) -> FloatArray:
+    """Every row as floats, row by row; raise on the first bad field, naming the line."""
     width = len(names)
-    n = len(rows)
-    times = np.zeros(n)
-    x_eg = np.zeros((n, 4, 4))
-    extra = np.zeros((n, width - 8))
-    lines = np.zeros(n, dtype=np.int64)
-    norms = np.ones(n)
+    table = np.zeros((len(rows), width))
     for k, (lineno, fields) in enumerate(rows):
         where = f"{path}: line {lineno}"
         if len(fields) != width:
@@ -522,33 +582,20 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
         vals = [_number(f, where, nm) for f, nm in zip(fields[:8], CSV_COLUMNS, strict=True)]
         for j in range(8, width):
             try:
-                extra[k, j - 8] = float(fields[j])
+                table[k, j] = float(fields[j])
             except ValueError:
                 raise InputFormatError(
                     f"{where}: column {_excerpt(names[j])} is not a number: {_excerpt(fields[j])}"
                 ) from None
-        q = np.array(vals[4:8])
-        norms[k] = float(np.linalg.norm(q))
-        if norms[k] < 1e-9:
+        if float(np.linalg.norm(vals[4:8])) < 1e-9:
             raise InputFormatError(f"{where}: quaternion (qw, qx, qy, qz) is zero")
-        if k and not vals[0] > times[k - 1]:
+        if k and not vals[0] > table[k - 1, 0]:
             raise InputFormatError(
-                f"{where}: time stamps must strictly increase: t = {vals[0]} after {times[k - 1]}"
+                f"{where}: time stamps must strictly increase: t = {vals[0]} after "
+                f"{table[k - 1, 0]}"
             )
-        times[k] = vals[0]
-        x_eg[k] = np.eye(4)
-        x_eg[k, :3, :3] = matrix_from_quaternion(q)
-        x_eg[k, :3, 3] = np.array(vals[1:4]) * scale
-        lines[k] = lineno
-    _warn_quaternion_norms(path, norms, lines)
-    return Demonstration(
-        times=times,
-        X_EG=x_eg,
-        units=units,
-        source=path,
-        extra={names[j]: extra[:, j - 8].copy() for j in range(8, width)},
-        lines=lines,
-    )
+        table[k, :8] = vals
+    return table
 
 
 def _warn_quaternion_norms(path: Path, norms: FloatArray, lines: IntArray) -> None:

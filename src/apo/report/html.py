@@ -167,16 +167,13 @@ def poses_to_rows(X: npt.ArrayLike, scale: float) -> FloatArray:
 
     Quaternions are unit with ``qw >= 0`` (``docs/conventions.md``).
     """
-    from scipy.spatial.transform import Rotation
+    from apo.spatial import quaternions_from_matrices
 
     X = np.asarray(X, dtype=np.float64).reshape(-1, 4, 4)
     rows = np.empty((X.shape[0], 7))
     rows[:, :3] = X[:, :3, 3] * scale
     if X.shape[0]:
-        xyzw = Rotation.from_matrix(X[:, :3, :3]).as_quat()
-        q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
-        q[q[:, 0] < 0] *= -1.0
-        rows[:, 3:] = q
+        rows[:, 3:] = quaternions_from_matrices(X[:, :3, :3])
     return rows
 
 
