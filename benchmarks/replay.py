@@ -25,7 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -200,41 +200,79 @@ def print_table(table: list[dict[str, Any]]) -> None:
               f"{_cell(r.get('playback')):>27}  {speed:>12.2f}")  # fmt: skip
 
 
+def _jobs(
+    tasks: dict[str, Path], args: argparse.Namespace
+) -> list[tuple[str, str, float, bool, int]]:
+    """Every replay, in the order of the clearances given; trial by trial within one."""
+    return [
+        (sc, str(tasks[sc]), cl, mode == "playback", i)
+        for cl in args.clearances
+        for i in range(args.trials)
+        for sc in args.scenarios
+        if sc in tasks
+        for mode in args.modes
+    ]
+
+
+def _run_all(jobs: list[Any], n_jobs: int, log: Path, done: list[dict[str, Any]]) -> None:
+    """Run the replays not in ``done``; append each row to ``log`` (JSON lines) as it ends."""
+    have = {(r["scenario"], r["clearance_mm"], r["mode"] == "playback", r["trial"]) for r in done}
+    todo = [j for j in jobs if (j[0], j[2], j[3], j[4]) not in have]
+    with ProcessPoolExecutor(max_workers=n_jobs) as pool, log.open("a") as fh:
+        futures = [pool.submit(run_trial, j) for j in todo]
+        for f in as_completed(futures):
+            row = f.result()
+            done.append(row)
+            fh.write(json.dumps(row) + "\n")
+            fh.flush()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--trials", type=int, default=60)
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
-    ap.add_argument("--clearances", nargs="+", type=float, default=list(CLEARANCES_MM))
+    ap.add_argument("--clearances", nargs="+", type=float, default=[0.2, 0.5, 0.1],
+                    help="mm, run in this order (default 0.2 0.5 0.1)")  # fmt: skip
     ap.add_argument("--modes", nargs="+", default=["skills", "playback"])
     ap.add_argument("--output", default=str(HERE / "results" / "replay.json"))
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the rows of OUTPUT's .jsonl log, run only the missing ones",
+    )
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="summarise OUTPUT's .jsonl log (an interrupted run) without running",
+    )
     ap.add_argument("--no-real-timing", action="store_true")
     args = ap.parse_args()
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    log = out.with_suffix(".jsonl")
+    rows: list[dict[str, Any]] = []
+    if (args.resume or args.report_only) and log.is_file():
+        rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    elif log.exists():
+        log.unlink()
     load0 = os.getloadavg()
+    real, total = None, 0.0
     with tempfile.TemporaryDirectory() as tmp:
-        tasks = make_tasks(Path(tmp), args.scenarios)
-        jobs = [
-            (sc, str(p), cl, mode == "playback", i)
-            for sc, p in tasks.items()
-            for cl in args.clearances
-            for mode in args.modes
-            for i in range(args.trials)
-        ]
-        t0 = time.perf_counter()
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            rows = list(pool.map(run_trial, jobs, chunksize=2))
-        total = time.perf_counter() - t0
-        real = None if args.no_real_timing else real_wall_time(tasks)
+        if not args.report_only:
+            tasks = make_tasks(Path(tmp), args.scenarios)
+            real = None if args.no_real_timing else real_wall_time(tasks)
+            t0 = time.perf_counter()
+            _run_all(_jobs(tasks, args), args.jobs, log, rows)
+            total = time.perf_counter() - t0
     table = summarise(rows)
     print_table(table)
     if real is not None:
         print(f"apo replay of the real demonstration: {real['wall_s']:.2f} s wall "
               f"(success {real['success']}, {real['sim_s']} s simulated)")  # fmt: skip
     load1 = os.getloadavg()
-    print(f"{len(rows)} replays in {total:.0f} s wall with {args.jobs} processes; "
+    print(f"{len(rows)} replays, {total:.0f} s wall with {args.jobs} processes; "
           f"load average {load0[0]:.1f} before, {load1[0]:.1f} after")  # fmt: skip
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({
         "conditions": {
             "trials": args.trials, "perturb_max": [2.0, 2.0], "offset_max": [1.0, 1.0],

@@ -367,10 +367,13 @@ def _execute(
     playback: bool,
     frames: tuple[FloatArray, FloatArray] | None,
     sample: Any,
+    pace: str = "plan",
 ) -> tuple[list[PrimitiveRun], str]:
     """Run the skill program (default: ``apo.motion.plan(task)``) or the playback."""
     if playback:
         times, poses = frames if frames is not None else _state_poses(task)
+        if pace == "plan":
+            times = np.zeros(len(poses))  # no waiting: every move at the plan's speeds
         return run_playback(hand, times, poses, hand.scene.com_G, sample), "playback"
     if program is None:
         from apo.motion import plan

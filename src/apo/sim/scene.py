@@ -65,7 +65,7 @@ class ContactParameters:
     """
 
     timestep: float = 0.001
-    solref: tuple[float, float] = (-6.0e5, -1.0e3)
+    solref: tuple[float, float] = (0.002, 1.0)
     solimp: tuple[float, float, float] = (0.99, 0.999, 0.0001)
     impratio: float = 10.0
     friction: float = 0.3
