@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "apo"
-CORE = ("spatial", "geometry", "contact", "dof", "transitions", "correction", "task")
+CORE = ("spatial", "jsonform", "geometry", "contact", "dof", "transitions", "correction", "task")
 # What the core may import from apo: the core itself and the leaf modules below it.
 CORE_OK = (*CORE, "constants", "errors", "typing")
 
@@ -111,7 +111,17 @@ def test_one_definition_of_the_array_aliases_and_the_units_table() -> None:
 LAYERS = {
     **dict.fromkeys(("constants", "errors", "typing"), 1),
     **dict.fromkeys(
-        ("spatial", "geometry", "shapes", "contact", "dof", "transitions", "correction", "task"),
+        (
+            "spatial",
+            "jsonform",
+            "geometry",
+            "shapes",
+            "contact",
+            "dof",
+            "transitions",
+            "correction",
+            "task",
+        ),
         2,
     ),
     **dict.fromkeys(

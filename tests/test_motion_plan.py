@@ -157,17 +157,37 @@ def test_forces_push_along_the_direction_and_into_kept_contacts(name: str) -> No
             # the direction of motion is force-controlled, pushing along it
             assert np.linalg.norm(c.force_directions @ p.direction) == pytest.approx(1.0)
             assert f @ p.direction == pytest.approx(pp.push_force)
-        if p.kind in (PrimitiveKind.PUSH_TO, PrimitiveKind.SLIDE) and p.space == "rotation":
-            assert tq @ p.direction == pytest.approx(pp.push_torque)
-            # torques are about the centre, which lies on the axis through the pivot
-            off = p.compliance.center - p.point
-            assert np.linalg.norm(off - (off @ p.direction) * p.direction) < 1e-9
+        if p.space == "rotation":
+            # a turn is position-controlled about its axis, guarded by the reaction torque
+            assert np.linalg.norm(c.position_axes @ p.direction) == pytest.approx(1.0)
+            assert abs(tq @ p.direction) < 1e-12
+            if p.kind != PrimitiveKind.RELEASE:
+                assert "torque" in p.stop.until
+        if p.kind in SUBSKILL_KINDS:
+            assert p.stop.until and p.profile is not None
+            # the force acts at the centroid of the contacts kept during the motion
+            kept = [e for e in task.state(p.from_state).elements if p.kind != "release"]
+            if kept:
+                a = task.state(p.from_state)
+                pts = [p.target.X_EG @ np.linalg.inv(a.X_EG) @ np.append(e.point, 1) for e in kept]
+                np.testing.assert_allclose(c.center, np.mean(pts, axis=0)[:3], atol=1e-9)
         if p.kind == PrimitiveKind.RELEASE:
             # a release moves away by position control, no force along its direction
             rows = c.force_directions if p.space == "translation" else c.torque_axes
             assert np.all(np.abs(rows @ p.direction) < 1e-9)
-        if p.kind in (PrimitiveKind.APPROACH, PrimitiveKind.ALIGN):
+        if p.kind == PrimitiveKind.APPROACH:
             assert c.force_directions.shape[0] == 0 and c.torque_axes.shape[0] == 0
+            assert p.stop.collision and p.stop.until == ("pose",)
+        if p.kind == PrimitiveKind.ALIGN:
+            # feels for the entrance: pressed along it, everything else position-controlled
+            se = p.alignment.search
+            assert se is not None and p.stop.until == ("entrance",)
+            np.testing.assert_allclose(
+                c.force_directions.T @ c.forces, pp.hold_force * se.direction
+            )
+            assert c.torque_axes.shape[0] == 0
+            assert np.allclose(se.directions @ se.direction, 0.0)
+            assert se.pattern == ("none", "zigzag", "spiral")[len(se.directions)]
         # never pulls away from a contact of the start state it keeps
         if p.transition is not None and p.kind != PrimitiveKind.ALIGN:
             a = task.state(p.from_state)

@@ -12,17 +12,16 @@ G in the environment frame E (``docs/conventions.md``).
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, cast
 
 import numpy as np
-import numpy.typing as npt
 
 from apo.constants import UNITS
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
+from apo.jsonform import JsonReader, rounded, rounded_list
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -43,7 +42,11 @@ __all__ = [
     "TaskModel",
     "Transition",
     "check_graph",
+    "element_from_dict",
+    "element_to_dict",
     "graph_to_dict",
+    "model_from_dict",
+    "model_to_dict",
     "state_graph",
     "state_letters",
     "task_from_dict",
@@ -277,16 +280,6 @@ def state_letters(n: int) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 
-def _r(x: float, nd: int = 9) -> float:
-    return float(round(float(x), nd))
-
-
-def _vec(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
-    """``[_r(v * scale) for v in a]``, on plain floats (numpy scalars cost ten times more)."""
-    arr = np.asarray(a, dtype=float).ravel()
-    return [round(v, 9) for v in (arr if scale == 1.0 else arr * scale).tolist()]
-
-
 def task_to_dict(task: TaskModel) -> dict[str, Any]:
     """Return the JSON form of ``task`` (schema ``"apo.task/1"``, lengths in ``task.units``).
 
@@ -320,10 +313,10 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
         "frame": task.frame,
         "source": task.source,
         "n_frames": int(task.n_frames),
-        "threshold": _r(task.threshold * k),
+        "threshold": rounded(task.threshold * k),
         "models": {
-            "grasped": _model_to_dict(task.grasped),
-            "environment": _model_to_dict(task.environment),
+            "grasped": model_to_dict(task.grasped),
+            "environment": model_to_dict(task.environment),
         },
         "states": states,
         "transitions": transitions,
@@ -339,24 +332,26 @@ def _state_to_dict(s: State, k: float, q: FloatArray) -> dict[str, Any]:
     return {
         "id": s.id,
         "frames": [int(s.frames[0]), int(s.frames[1])],
-        "times": [_r(s.times[0]), _r(s.times[1])],
+        "times": [rounded(s.times[0]), rounded(s.times[1])],
         "singular": bool(s.singular),
         "fig25": [int(v) for v in s.fig25],
         "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
-        "elements": [
-            {
-                "kind": str(e.kind),
-                "grasped": [e.grasped[0], int(e.grasped[1])],
-                "environment": [e.environment[0], int(e.environment[1])],
-                "point": _vec(e.point, k),
-                "normals": [_vec(n) for n in np.asarray(e.normals).reshape(-1, 3)],
-            }
-            for e in s.elements
-        ],
-        "pose": {"position": _vec(p, k), "quaternion": _vec(q)},
+        "elements": [element_to_dict(e, k) for e in s.elements],
+        "pose": {"position": rounded_list(p, k), "quaternion": rounded_list(q)},
         "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
         "pose_converged": bool(s.pose_converged),
         "same_as": s.same_as,
+    }
+
+
+def element_to_dict(e: Element, k: float) -> dict[str, Any]:
+    """Return the JSON form of a contact element, its point times ``k`` (to the units)."""
+    return {
+        "kind": str(e.kind),
+        "grasped": [e.grasped[0], int(e.grasped[1])],
+        "environment": [e.environment[0], int(e.environment[1])],
+        "point": rounded_list(e.point, k),
+        "normals": [rounded_list(n) for n in np.asarray(e.normals).reshape(-1, 3)],
     }
 
 
@@ -374,10 +369,10 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
                 "kind": str(u.kind),
                 "space": u.space,
                 "type": u.type,
-                "direction": _vec(np.zeros(3) if u.direction is None else u.direction),
-                "point": None if u.point is None else _vec(u.point, k),
+                "direction": rounded_list(np.zeros(3) if u.direction is None else u.direction),
+                "point": None if u.point is None else rounded_list(u.point, k),
                 "source": u.source,
-                "subspace": [_vec(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
+                "subspace": [rounded_list(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
             }
             for u in t.subskills
         ],
@@ -393,74 +388,14 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
     }
 
 
-def _model_to_dict(m: ModelRef) -> dict[str, Any]:
+def model_to_dict(m: ModelRef) -> dict[str, Any]:
+    """Return the JSON form ``{"path", "sha256", "name"}`` of a model reference."""
     return {"path": m.path, "sha256": m.sha256, "name": m.name}
 
 
 # --------------------------------------------------------------------------------------------
 # From JSON, with validation
 # --------------------------------------------------------------------------------------------
-
-
-class _Reader:
-    """Typed accessors that raise :class:`InputFormatError` naming the source and field."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source or "task"
-
-    def fail(self, where: str, what: str) -> InputFormatError:
-        return InputFormatError(f"{self.source}: {where}: {what}")
-
-    def obj(self, d: Any, where: str) -> Mapping[str, Any]:
-        if not isinstance(d, Mapping):
-            raise self.fail(where, f"expected an object, got {type(d).__name__}")
-        return d
-
-    def get(self, d: Mapping[str, Any], key: str, where: str) -> Any:
-        if key not in d:
-            raise self.fail(where, f"missing field {key!r}")
-        return d[key]
-
-    def lst(self, v: Any, where: str, n: int | None = None) -> Sequence[Any]:
-        if not isinstance(v, list | tuple):
-            raise self.fail(where, f"expected a list, got {type(v).__name__}")
-        if n is not None and len(v) != n:
-            raise self.fail(where, f"expected {n} entries, got {len(v)}")
-        return v
-
-    def string(self, v: Any, where: str, choices: Sequence[str] | None = None) -> str:
-        if not isinstance(v, str):
-            raise self.fail(where, f"expected a string, got {type(v).__name__}")
-        if choices is not None and v not in choices:
-            raise self.fail(where, f"expected one of {list(choices)}, got {v!r}")
-        return v
-
-    def integer(self, v: Any, where: str) -> int:
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self.fail(where, f"expected an integer, got {v!r}")
-        return v
-
-    def boolean(self, v: Any, where: str) -> bool:
-        if not isinstance(v, bool):
-            raise self.fail(where, f"expected true or false, got {v!r}")
-        return v
-
-    def number(self, v: Any, where: str) -> float:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self.fail(where, f"expected a finite number, got {v!r}")
-        return float(v)
-
-    def vector(self, v: Any, where: str, n: int) -> FloatArray:
-        items = self.lst(v, where, n)
-        return np.array([self.number(x, f"{where}[{i}]") for i, x in enumerate(items)])
-
-    def feature(self, v: Any, where: str) -> Feature:
-        items = self.lst(v, where, 2)
-        kind = self.string(items[0], f"{where}[0]", ("v", "e", "f"))
-        idx = self.integer(items[1], f"{where}[1]")
-        if idx < 0:
-            raise self.fail(where, f"negative feature index {idx}")
-        return (kind, idx)
 
 
 def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
@@ -484,7 +419,7 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
         ids, a quaternion that is not unit length, frames out of order. The message names
         ``source`` and the field (e.g. ``states[2].fig25``).
     """
-    rd = _Reader(source)
+    rd = JsonReader(source or "task")
     d = rd.obj(data, "top level")
     schema = d.get("schema")
     if schema != SCHEMA:
@@ -494,7 +429,7 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
     frame = rd.string(rd.get(d, "frame", "top level"), "frame", ("environment",))
     models = rd.obj(rd.get(d, "models", "top level"), "models")
     refs = [
-        _model_from_dict(rd, rd.get(models, r, "models"), f"models.{r}")
+        model_from_dict(rd, rd.get(models, r, "models"), f"models.{r}")
         for r in ("grasped", "environment")
     ]
     states: list[State] = []
@@ -542,7 +477,7 @@ def task_from_dict(data: Any, *, source: str = "") -> TaskModel:
     return task
 
 
-def _read_state(rd: _Reader, sd_: Any, w: str, k: float, ids: set[str], prev_last: int) -> State:
+def _read_state(rd: JsonReader, sd_: Any, w: str, k: float, ids: set[str], prev_last: int) -> State:
     """Read one state ``w`` (lengths times ``k`` to metres); ``ids`` are the earlier ones."""
     sd = rd.obj(sd_, w)
     sid = rd.string(rd.get(sd, "id", w), f"{w}.id")
@@ -559,7 +494,7 @@ def _read_state(rd: _Reader, sd_: Any, w: str, k: float, ids: set[str], prev_las
         raise rd.fail(f"{w}.fig25", f"entries must be in 0..3, got {list(fig25)}")
     six = _read_six(rd, sd.get("six", {}), f"{w}.six")
     elements = [
-        _read_element(rd, ed_, f"{w}.elements[{j}]", k)
+        element_from_dict(rd, ed_, f"{w}.elements[{j}]", k)
         for j, ed_ in enumerate(rd.lst(rd.get(sd, "elements", w), f"{w}.elements"))
     ]
     singular = rd.boolean(rd.get(sd, "singular", w), f"{w}.singular")
@@ -589,7 +524,7 @@ def _read_state(rd: _Reader, sd_: Any, w: str, k: float, ids: set[str], prev_las
     )
 
 
-def _read_six(rd: _Reader, v: Any, w: str) -> dict[str, tuple[int, int, int, int, int, int]]:
+def _read_six(rd: JsonReader, v: Any, w: str) -> dict[str, tuple[int, int, int, int, int, int]]:
     """Read a state's ``six`` numbers per space (6 non-negative ints summing to 3)."""
     six_d = rd.obj(v, w)
     six: dict[str, tuple[int, int, int, int, int, int]] = {}
@@ -606,8 +541,8 @@ def _read_six(rd: _Reader, v: Any, w: str) -> dict[str, tuple[int, int, int, int
     return six
 
 
-def _read_element(rd: _Reader, ed_: Any, we: str, k: float) -> Element:
-    """Read one contact element ``we`` (point times ``k`` to metres, unit normals)."""
+def element_from_dict(rd: JsonReader, ed_: Any, we: str, k: float) -> Element:
+    """Read the contact element ``we`` (its point times ``k``, to metres; unit normals)."""
     ed = rd.obj(ed_, we)
     normals_l = rd.lst(rd.get(ed, "normals", we), f"{we}.normals")
     if not normals_l:
@@ -625,7 +560,7 @@ def _read_element(rd: _Reader, ed_: Any, we: str, k: float) -> Element:
 
 
 def _read_transition(
-    rd: _Reader, td_: Any, w: str, k: float, before: State, after: State
+    rd: JsonReader, td_: Any, w: str, k: float, before: State, after: State
 ) -> Transition:
     """Read the transition ``w`` between the consecutive states ``before`` and ``after``."""
     td = rd.obj(td_, w)
@@ -665,7 +600,7 @@ def _read_transition(
     )
 
 
-def _read_subskill(rd: _Reader, ud_: Any, wu: str, k: float) -> SubSkill:
+def _read_subskill(rd: JsonReader, ud_: Any, wu: str, k: float) -> SubSkill:
     """Read one sub-skill ``wu`` (its axis point times ``k`` to metres)."""
     ud = rd.obj(ud_, wu)
     typ = ud.get("type")
@@ -684,7 +619,7 @@ def _read_subskill(rd: _Reader, ud_: Any, wu: str, k: float) -> SubSkill:
     )
 
 
-def _read_rejected(rd: _Reader, rj_: Any, w: str, ids: set[str]) -> Rejected:
+def _read_rejected(rd: JsonReader, rj_: Any, w: str, ids: set[str]) -> Rejected:
     """Read one rejected run ``w``; ``ids`` are the task's state ids."""
     rj = rd.obj(rj_, w)
     fr = rd.lst(rd.get(rj, "frames", w), f"{w}.frames", 2)
@@ -701,7 +636,7 @@ def _read_rejected(rd: _Reader, rj_: Any, w: str, ids: set[str]) -> Rejected:
     )
 
 
-def _read_pairs(rd: _Reader, v: Any, where: str) -> tuple[tuple[str, str], ...]:
+def _read_pairs(rd: JsonReader, v: Any, where: str) -> tuple[tuple[str, str], ...]:
     """Read a list of unit DOF transitions ``[["M", "D"], ...]``."""
     out: list[tuple[str, str]] = []
     for j, pr in enumerate(rd.lst(v, where)):
@@ -711,7 +646,8 @@ def _read_pairs(rd: _Reader, v: Any, where: str) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
-def _model_from_dict(rd: _Reader, v: Any, where: str) -> ModelRef:
+def model_from_dict(rd: JsonReader, v: Any, where: str) -> ModelRef:
+    """Read the model reference ``where`` (a 64-hex-digit ``sha256`` or null)."""
     m = rd.obj(v, where)
     path = rd.string(rd.get(m, "path", where), f"{where}.path")
     h = m.get("sha256")

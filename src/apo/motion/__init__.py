@@ -7,6 +7,7 @@ the planner (:func:`plan`), :mod:`apo.motion.trajectory` the nominal pose trajec
 
 from apo.motion.planner import plan
 from apo.motion.program import (
+    END_CONDITIONS,
     SCHEMA,
     Alignment,
     Compliance,
@@ -14,7 +15,9 @@ from apo.motion.program import (
     PlanParameters,
     Primitive,
     PrimitiveKind,
+    Profile,
     RotationType,
+    Search,
     SkillProgram,
     StopCondition,
     Target,
@@ -24,6 +27,7 @@ from apo.motion.program import (
 from apo.motion.trajectory import Trajectory, trajectory
 
 __all__ = [
+    "END_CONDITIONS",
     "SCHEMA",
     "Alignment",
     "Compliance",
@@ -31,7 +35,9 @@ __all__ = [
     "PlanParameters",
     "Primitive",
     "PrimitiveKind",
+    "Profile",
     "RotationType",
+    "Search",
     "SkillProgram",
     "StopCondition",
     "Target",

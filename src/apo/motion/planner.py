@@ -30,7 +30,9 @@ from apo.motion.program import (
     PlanParameters,
     Primitive,
     PrimitiveKind,
+    Profile,
     RotationType,
+    Search,
     SkillProgram,
     StopCondition,
     Target,
@@ -220,13 +222,19 @@ def _position_only(center: FloatArray) -> Compliance:
 
 
 def _hold(
-    split: _Split, kept: Sequence[Element], center: FloatArray, free: FloatArray, pp: PlanParameters
+    split: _Split,
+    kept: Sequence[Element],
+    center: FloatArray,
+    free: FloatArray,
+    pp: PlanParameters,
+    carry: FloatArray,
 ) -> None:
     """Force control into the kept contacts; torque control (zero) about their moment axes.
 
     ``free`` is the unit direction of motion (or zeros): the holding force is taken
     orthogonal to it. Opposing normals (walls on both sides) cancel: those directions are
-    force-controlled with zero force, i.e. compliant.
+    force-controlled with zero force, i.e. compliant. ``carry`` moves the kept contact
+    points (recorded at the start state's pose) to the target pose, where ``center`` is.
     """
     N = _normals(kept)
     if N.shape[0] == 0:
@@ -239,20 +247,58 @@ def _hold(
         split.force = split.force - pp.hold_force * us
     for e in kept:
         for n in e.normals:
-            m = np.cross(e.point - center, n)
+            m = np.cross((carry @ np.append(e.point, 1.0))[:3] - center, n)
             if np.linalg.norm(m) > _RANK_TOL:
                 split.torque_rows.append(m)
 
 
-def _travel(kind: PrimitiveKind, rot: bool, expected: float, pp: PlanParameters) -> StopCondition:
+_UNTIL = {
+    (PrimitiveKind.PUSH_TO, False): ("force",),
+    (PrimitiveKind.PUSH_TO, True): ("pose_in_contact", "torque"),
+    (PrimitiveKind.SLIDE, False): ("force", "expected"),
+    (PrimitiveKind.SLIDE, True): ("pose", "torque"),
+    (PrimitiveKind.RELEASE, False): ("expected", "pose"),
+    (PrimitiveKind.RELEASE, True): ("expected", "pose"),
+}
+"""What ends a sub-skill primitive well, by (kind, rotational) (``docs/motion.md``)."""
+
+
+def _stop(
+    kind: PrimitiveKind, rot: bool, expected: float, pp: PlanParameters, **more: object
+) -> StopCondition:
+    """Stop condition of a guarded move: thresholds, travel limit, end conditions."""
     margin = pp.angular_margin if rot else pp.travel_margin
     if kind == PrimitiveKind.RELEASE and not rot:
         expected = max(expected, pp.standoff)
+    fields: dict[str, object] = {
+        "until": _UNTIL.get((kind, rot), ("pose",)),
+        "tolerance": pp.reach_tolerance,
+        "angular_tolerance": pp.turn_tolerance,
+        "touch": pp.touch_force,
+        "confirm": pp.confirm_time,
+        "stall": pp.stall_time,
+        **more,
+    }
     return StopCondition(
         force=pp.force_threshold,
         torque=pp.torque_threshold,
         travel=expected + margin,
         expected=expected,
+        **fields,  # type: ignore[arg-type]
+    )
+
+
+def _profile(kind: PrimitiveKind, rot: bool, pp: PlanParameters) -> Profile:
+    """Speeds of a primitive's path: free-space moves faster, a push-to slows before contact."""
+    if kind == PrimitiveKind.APPROACH:
+        f = pp.free_speed_factor
+        return Profile(speed=f * pp.speed, angular_speed=f * pp.angular_speed)
+    slow = kind == PrimitiveKind.PUSH_TO and not rot
+    return Profile(
+        speed=pp.speed,
+        angular_speed=pp.angular_speed,
+        slow_zone=pp.slow_zone if slow else 0.0,
+        slow_speed=pp.slow_speed if slow else 0.0,
     )
 
 
@@ -290,10 +336,37 @@ def _checked_sign(
     if d is None:
         return None, u.source
     if u.space == "rotation":
-        s, limit = float(_rotvec(X_start, X_target) @ d), 0.5 * pp.angular_margin
+        # a turn is position-controlled to the target orientation: its axis takes the sense
+        # the demonstration turns in (the reaction torque it is guarded by opposes that)
+        s, limit = float(_rotvec(X_start, X_target) @ d), 1e-9
     else:
         s, limit = float((center - _moved(X_start, X_target, center)) @ d), 0.5 * pp.travel_margin
     return (-d, "poses") if s < -limit else (d, u.source)
+
+
+def _center(
+    kept: Sequence[Element], a: State, b: State, kind: PrimitiveKind, X_target: FloatArray
+) -> FloatArray:
+    """Compliance centre of a sub-skill primitive: where its force acts, torques are about.
+
+    The centroid of the contacts kept during the motion (its support), else of the contacts
+    it is about (new ones; lost ones for a release), else the target's origin. The wrench a
+    primitive commands is a force through this point with zero torque about the kept
+    contacts' moment axes; through the support's centroid that force tilts the object about
+    no edge of the support (the hold force presses the support flat and a push along it
+    acts in its plane), whereas a force applied away from it, e.g. at the new contact a
+    push is heading for, tips the object over the support's edge (nothing resists a
+    torque-free axis: the block pushed into a wall fell over).
+    """
+    c_kept = _centroid(kept)
+    if c_kept is not None:  # at the start state's pose: carried with the object to the target
+        return _moved(X_target, a.X_EG, c_kept)
+    release = kind == PrimitiveKind.RELEASE
+    focus, at = (_new(b, a), a) if release else (_new(a, b), b)
+    if not focus:
+        focus, at = list(b.elements), b
+    c0 = _centroid(focus)
+    return X_target[:3, 3].copy() if c0 is None else _moved(X_target, at.X_EG, c0)
 
 
 def _subskill_primitive(
@@ -313,25 +386,19 @@ def _subskill_primitive(
     rot = u.space == "rotation"
     d = _unit(u.direction)
     dz = np.zeros(3) if d is None else d
-    focus = (_new(b, a) if kind == PrimitiveKind.RELEASE else _new(a, b)) or list(b.elements)
-    c0 = _centroid(focus)
-    center = X_target[:3, 3].copy() if c0 is None else c0
-    if rot and u.point is not None and d is not None:
-        center = u.point + ((center - u.point) @ d) * d
-    d, source = _checked_sign(u, d, X_start, X_target, center, pp)
-    dz = np.zeros(3) if d is None else d
-    split = _Split()
     # contacts kept during the motion: all of the start state's, except those a release
     # breaks (a slide keeps its support until the very end, where the support ends)
     kept = _kept(a, b) if kind == PrimitiveKind.RELEASE else list(a.elements)
+    center = _center(kept, a, b, kind, X_target)
+    carry = X_target @ invert_pose(a.X_EG)  # start state's contact points to the target pose
+    d, source = _checked_sign(u, d, X_start, X_target, center, pp)
+    dz = np.zeros(3) if d is None else d
+    split = _Split()
     if rot:
         expected = 0.0 if d is None else _angle_about(X_start, X_target, d)
-        if d is not None and kind != PrimitiveKind.RELEASE:
-            split.torque_rows.append(d)
-            split.torque = split.torque + pp.push_torque * d
-        elif d is not None:
+        if d is not None:  # turned by position control (push-to, slide: guarded by contact)
             split.position_only_r = d[None, :]
-        _hold(split, kept, center, np.zeros(3), pp)
+        _hold(split, kept, center, np.zeros(3), pp, carry)
         if held is not None:
             split.force_rows.append(held)
             split.force = split.force + pp.hold_force * held
@@ -342,7 +409,7 @@ def _subskill_primitive(
             split.force = split.force + pp.push_force * d
         elif d is not None:
             split.position_only_t = d[None, :]
-        _hold(split, kept, center, dz, pp)
+        _hold(split, kept, center, dz, pp, carry)
     return Primitive(
         index=0,
         kind=kind,
@@ -357,8 +424,9 @@ def _subskill_primitive(
         subspace=np.asarray(u.subspace, dtype=float).reshape(-1, 3),
         source=source,
         target=Target(state=b.id, elements=b.elements, X_EG=X_target),
-        stop=_travel(kind, rot, expected, pp),
+        stop=_stop(kind, rot, expected, pp),
         compliance=split.compliance(center),
+        profile=_profile(kind, rot, pp),
     )
 
 
@@ -385,13 +453,13 @@ def _position_controlled(
         subspace=np.zeros((0, 3)),
         source="plan",
         target=Target(state=state.id, elements=state.elements, X_EG=X),
-        stop=StopCondition(
-            force=pp.force_threshold,
-            torque=pp.torque_threshold,
-            travel=expected + pp.travel_margin,
-            expected=expected,
+        stop=replace(
+            _stop(kind, False, expected, pp),
+            until=("pose",),
+            collision=kind == PrimitiveKind.APPROACH,
         ),
         compliance=_position_only(center),
+        profile=_profile(kind, False, pp),
     )
 
 
@@ -464,8 +532,19 @@ def _approach(
     legs = [X0, *via, X_goal]
     dist = sum(float(np.linalg.norm(b[:3, 3] - a[:3, 3])) for a, b in itertools.pairwise(legs))
     prim = _position_controlled(PrimitiveKind.APPROACH, s0, X_goal, X_goal[:3, 3].copy(), dist, pp)
+    # the orientation is reached when no point of the object (within the task's contact
+    # points) is off by more than the position tolerance
+    rho = max([pp.reach_tolerance, *(float(np.linalg.norm(q)) for q in _local_points(task))])
+    prim = replace(prim, stop=replace(prim.stop, angular_tolerance=pp.reach_tolerance / rho))
     du = _unit(X_goal[:3, 3] - legs[-2][:3, 3])
     return replace(prim, direction=np.zeros(3) if du is None else du, via=via), X_goal
+
+
+def _local_points(task: TaskModel) -> list[FloatArray]:
+    """Every contact point of the task in the grasped object's frame (metres)."""
+    return [
+        (invert_pose(s.X_EG) @ np.append(e.point, 1.0))[:3] for s in task.states for e in s.elements
+    ]
 
 
 def _lift_and_over(
@@ -485,8 +564,7 @@ def _lift_and_over(
     """
     points = [e.point for s in task.states for e in s.elements]
     rise = max([0.0, *(float(up @ (p - contact)) for p in points)])
-    local = [invert_pose(s.X_EG) @ np.append(e.point, 1.0) for s in task.states for e in s.elements]
-    rho = max([0.0, *(float(np.linalg.norm(q[:3])) for q in local)])
+    rho = max([0.0, *(float(np.linalg.norm(q)) for q in _local_points(task))])
     theta = float(np.linalg.norm(_rotvec(X0, X_goal)))
     rise += 2.0 * rho * np.sin(min(theta, np.pi) / 2.0)
     level0, level_s = float(up @ X0[:3, 3]), float(up @ X_goal[:3, 3])
@@ -577,7 +655,7 @@ def plan(
         if tr.critical and cur.align_for is None:
             cur.align_for = i
     _finish(task, cur, pp)
-    prims = tuple(replace(p, index=k) for k, p in enumerate(cur.out))
+    prims = tuple(replace(p, index=k) for k, p in enumerate(_with_searches(cur.out, pp)))
     final = task.states[-1]
     return SkillProgram(
         units=task.units,
@@ -590,6 +668,62 @@ def plan(
         primitives=prims,
         parameters=pp,
     )
+
+
+def _leading_point(X: FloatArray, later: Target, e: FloatArray, band: float) -> FloatArray | None:
+    """Return the object's leading point along ``e`` at pose ``X``.
+
+    The mean of the contact points of a later target (carried to ``X``) within ``band`` of
+    the farthest along ``e``: the part that enters first, about which an align turns (so it
+    stays at the entrance).
+    """
+    if not later.elements:
+        return None
+    pts = np.array([_moved(X, later.X_EG, el.point) for el in later.elements])
+    s = pts @ e
+    return np.asarray(pts[s >= s.max() - band].mean(axis=0), dtype=float)
+
+
+def _with_searches(prims: Sequence[Primitive], pp: PlanParameters) -> list[Primitive]:
+    """Give each ``align`` its search for the entrance and the compliance that feels for it.
+
+    The entrance direction is that of the next translational sub-skill (the move through the
+    entrance). The align presses along it with ``hold_force`` (force control; everything
+    else position-controlled) while it moves to the aligned pose and then sweeps its aligned
+    translations across that direction (a zig-zag for one, a square spiral for two) until
+    the object drops ``search_drop`` along it. The plan cannot know the environment closer
+    than the task's poses (an unknown offset larger than the clearance is the usual case):
+    only contact tells where the entrance is, the usual peg-in-hole search.
+    """
+    out = list(prims)
+    for k, p in enumerate(out):
+        if p.kind != PrimitiveKind.ALIGN or p.alignment is None:
+            continue
+        nxt = [q for q in out[k + 1 :] if q.space == MotionSpace.TRANSLATION]
+        e = _unit(nxt[0].direction) if nxt else None
+        if e is None:
+            continue
+        U = _remove(p.alignment.translations, e[None, :])
+        lead = _leading_point(p.target.X_EG, nxt[0].target, e, pp.search_drop)
+        search = Search(
+            direction=e,
+            force=pp.hold_force,
+            pattern=("none", "zigzag", "spiral", "spiral")[U.shape[0]],
+            directions=U[:2],
+            pitch=pp.search_pitch,
+            radius=pp.search_radius,
+            speed=pp.search_speed,
+            drop=pp.search_drop,
+        )
+        out[k] = replace(
+            p,
+            alignment=replace(p.alignment, search=search),
+            stop=replace(p.stop, until=("entrance",)),
+            compliance=_Split(force_rows=[e], force=pp.hold_force * e).compliance(
+                p.compliance.center if lead is None else lead
+            ),
+        )
+    return out
 
 
 def _finish(task: TaskModel, cur: _Cursor, pp: PlanParameters) -> None:

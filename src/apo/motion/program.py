@@ -18,31 +18,32 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
-from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
+from apo.jsonform import JsonReader, pose_to_dict, rounded, rounded_list, rounded_rows
 from apo.task import (
-    KINDS,
     UNITS,
     Element,
     ModelRef,
-    _model_from_dict,
-    _model_to_dict,
-    _r,
-    _Reader,
-    _vec,
+    element_from_dict,
+    element_to_dict,
+    model_from_dict,
+    model_to_dict,
 )
 from apo.typing import FloatArray
 
 __all__ = [
+    "END_CONDITIONS",
     "SCHEMA",
+    "SEARCH_PATTERNS",
     "Alignment",
     "Compliance",
     "MotionSpace",
     "PlanParameters",
     "Primitive",
     "PrimitiveKind",
+    "Profile",
     "RotationType",
+    "Search",
     "SkillProgram",
     "StopCondition",
     "Target",
@@ -122,12 +123,115 @@ class StopCondition:
         Metres or radians, >= 0: the travel the demonstration shows (start to target pose
         of the primitive, along ``direction`` or about the axis). A ``release`` moves this far
         (at least ``PlanParameters.standoff``); a ``slide`` that meets no obstacle ends here.
+    until : tuple of str
+        The conditions that end the primitive well, any of them (:data:`END_CONDITIONS`);
+        empty in programs written before the field existed (the executor then derives them
+        from the kind as ``docs/motion.md`` says).
+    tolerance, angular_tolerance : float
+        Metres and radians of the ``pose`` conditions.
+    touch : float
+        Newtons: the contact force of ``pose_in_contact``.
+    confirm : float
+        Seconds an end condition must hold without a break (filters impacts).
+    stall : float
+        Seconds the primitive may run beyond its nominal path without ending or failing;
+        then it has jammed and fails.
+    collision : bool
+        A contact force above ``force`` (or torque above ``torque``) is a failure (an
+        unexpected collision), not an end: position-controlled moves through free space.
     """
 
     force: float
     torque: float
     travel: float
     expected: float = 0.0
+    until: tuple[str, ...] = ()
+    tolerance: float = 2e-4
+    angular_tolerance: float = 0.035
+    touch: float = 0.5
+    confirm: float = 0.01
+    stall: float = 3.0
+    collision: bool = False
+
+
+END_CONDITIONS = ("force", "torque", "expected", "pose", "pose_in_contact", "entrance")
+"""What can end a primitive well (``StopCondition.until``, ``docs/motion.md``):
+
+- ``force``: the sensed contact force against ``direction`` reaches ``stop.force``;
+- ``torque``: the contact torque about the axis (``direction`` through ``point``) against
+  ``direction`` reaches ``stop.torque``;
+- ``expected``: the travel along ``direction`` / about the axis reaches ``stop.expected``
+  (and the nominal path is over);
+- ``pose``: the nominal path is over and the pose is within ``stop.tolerance`` /
+  ``stop.angular_tolerance`` of the target (an ``align``: its alignment tolerances);
+- ``pose_in_contact``: ``pose`` with a contact force of at least ``stop.touch``;
+- ``entrance``: during an alignment search, the object has moved ``search.drop`` along
+  ``search.direction`` (it found the entrance).
+"""
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Speeds of a primitive's nominal path (the executor's time law, ``docs/motion.md``).
+
+    Attributes
+    ----------
+    speed : float
+        m/s of the compliance centre (or of the pivot of a rotational sub-skill) on the path.
+    angular_speed : float
+        rad/s of the orientation.
+    slow_zone : float
+        Metres before the expected end of a guarded translational push-to in which its
+        force-controlled motion slows down to ``slow_speed`` (0: never).
+    slow_speed : float
+        m/s in the slow zone.
+    """
+
+    speed: float
+    angular_speed: float
+    slow_zone: float = 0.0
+    slow_speed: float = 0.0
+
+
+@dataclass(frozen=True)
+class Search:
+    """Where an ``align`` feels for the entrance (a guarded spiral/zig-zag search).
+
+    The object is pressed with ``force`` along ``direction`` (the direction of the move
+    through the entrance) while its position sweeps ``directions`` about the aligned
+    position: a zig-zag of growing amplitude (one direction) or a square spiral (two), passes
+    ``pitch`` apart, out to ``radius``, at ``speed``. The search has found the entrance once
+    the object has moved ``drop`` along ``direction``; a sweep that ends without it fails.
+
+    Attributes
+    ----------
+    direction : ndarray, shape (3,)
+        Unit, environment frame.
+    force : float
+        Newtons along ``direction``.
+    pattern : str
+        ``"zigzag"``, ``"spiral"`` or ``"none"`` (no translation to search: only ``drop``).
+    directions : ndarray, shape (k, 3)
+        Orthonormal rows orthogonal to ``direction`` (k = 1 for a zig-zag, 2 for a spiral).
+    pitch, radius : float
+        Metres.
+    speed : float
+        m/s along the sweep.
+    drop : float
+        Metres.
+    """
+
+    direction: FloatArray
+    force: float
+    pattern: str
+    directions: FloatArray
+    pitch: float
+    radius: float
+    speed: float
+    drop: float
+
+
+SEARCH_PATTERNS = ("zigzag", "spiral", "none")
 
 
 @dataclass(frozen=True)
@@ -200,12 +304,16 @@ class Alignment:
         Largest position error allowed along ``translations``, metres.
     angular_tolerance : float
         Largest angle error allowed about ``rotations``, radians.
+    search : Search or None
+        How to feel for the entrance after the position-controlled move to the aligned pose
+        (None: no search, the aligned pose is the end).
     """
 
     translations: FloatArray
     rotations: FloatArray
     tolerance: float
     angular_tolerance: float
+    search: Search | None = None
 
 
 @dataclass(frozen=True)
@@ -251,6 +359,9 @@ class Primitive:
         Poses (metres) the nominal path passes through before ``target.X_EG``: for the
         approach, the lift-and-cross-over poses; otherwise the poses of the states of the
         ``folded`` transitions, in order.
+    profile : Profile or None
+        Speeds of the path to the target (None in programs written before the field
+        existed: the plan's ``speed`` and ``angular_speed``).
     """
 
     index: int
@@ -270,6 +381,7 @@ class Primitive:
     compliance: Compliance
     alignment: Alignment | None = None
     via: tuple[FloatArray, ...] = ()
+    profile: Profile | None = None
 
     @property
     def guarded(self) -> bool:
@@ -303,6 +415,23 @@ class PlanParameters:
         m/s and rad/s of the nominal trajectory.
     sample_period : float
         Seconds between two samples of the trajectory (``motion.csv``).
+    free_speed_factor : float
+        The approach (free space) moves this many times faster than ``speed``.
+    slow_zone, slow_speed : float
+        Metres before the expected contact of a translational push-to, and the m/s it
+        slows to there.
+    reach_tolerance : float
+        Metres: the approach has reached its target (rotation: this over the object's size).
+    turn_tolerance : float
+        Radians: a rotational push-to or slide has reached its target orientation.
+    touch_force : float
+        Newtons: contact force that counts as touching (rotational push-to).
+    confirm_time, stall_time, settle_time : float
+        Seconds: an end condition must hold this long; a primitive that neither ends nor
+        fails this long after its nominal path has jammed; the compliance is held this long
+        after each primitive that ended well.
+    search_pitch, search_radius, search_speed, search_drop : float
+        The alignment search (:class:`Search`): metres, metres, m/s, metres.
     """
 
     standoff: float = 0.005
@@ -317,6 +446,19 @@ class PlanParameters:
     speed: float = 0.02
     angular_speed: float = 0.35
     sample_period: float = 0.02
+    free_speed_factor: float = 4.0
+    slow_zone: float = 0.003
+    slow_speed: float = 0.005
+    reach_tolerance: float = 0.0002
+    turn_tolerance: float = 0.035
+    touch_force: float = 0.5
+    confirm_time: float = 0.01
+    stall_time: float = 3.0
+    settle_time: float = 0.05
+    search_pitch: float = 0.0002
+    search_radius: float = 0.002
+    search_speed: float = 0.004
+    search_drop: float = 0.001
 
 
 @dataclass(frozen=True)
@@ -372,32 +514,56 @@ class SkillProgram:
 # --------------------------------------------------------------------------------------------
 
 
-def _rows(a: npt.ArrayLike) -> list[list[float]]:
-    return [_vec(row) for row in np.asarray(a, dtype=float).reshape(-1, 3)]
-
-
-def _pose(X: FloatArray, k: float) -> dict[str, list[float]]:
-    p, q = position_quaternion_from_pose(X)
-    return {"position": _vec(p, k), "quaternion": _vec(q)}
-
-
 def _elements(elements: Sequence[Element], k: float) -> list[dict[str, Any]]:
-    return [
-        {
-            "kind": e.kind,
-            "grasped": [e.grasped[0], int(e.grasped[1])],
-            "environment": [e.environment[0], int(e.environment[1])],
-            "point": _vec(e.point, k),
-            "normals": _rows(e.normals),
+    return [element_to_dict(e, k) for e in elements]
+
+
+def _stop_to_dict(st: StopCondition, rot: bool, k: float) -> dict[str, Any]:
+    kt = 1.0 if rot else k
+    return {
+        "force": rounded(st.force),
+        "torque": rounded(st.torque),
+        "travel": rounded(st.travel * kt),
+        "expected": rounded(st.expected * kt),
+        "until": list(st.until),
+        "tolerance": rounded(st.tolerance * k),
+        "angular_tolerance": rounded(st.angular_tolerance),
+        "touch": rounded(st.touch),
+        "confirm": rounded(st.confirm),
+        "stall": rounded(st.stall),
+        "collision": bool(st.collision),
+    }
+
+
+def _alignment_to_dict(a: Alignment | None, k: float) -> dict[str, Any] | None:
+    if a is None:
+        return None
+    out: dict[str, Any] = {
+        "translations": rounded_rows(a.translations),
+        "rotations": rounded_rows(a.rotations),
+        "tolerance": rounded(a.tolerance * k),
+        "angular_tolerance": rounded(a.angular_tolerance),
+        "search": None,
+    }
+    if a.search is not None:
+        se = a.search
+        out["search"] = {
+            "direction": rounded_list(se.direction),
+            "force": rounded(se.force),
+            "pattern": se.pattern,
+            "directions": rounded_rows(se.directions),
+            "pitch": rounded(se.pitch * k),
+            "radius": rounded(se.radius * k),
+            "speed": rounded(se.speed * k),
+            "drop": rounded(se.drop * k),
         }
-        for e in elements
-    ]
+    return out
 
 
 def _primitive_to_dict(p: Primitive, k: float) -> dict[str, Any]:
     c = p.compliance
-    rot = p.space == MotionSpace.ROTATION
-    out: dict[str, Any] = {
+    pr = p.profile
+    return {
         "index": int(p.index),
         "kind": str(p.kind),
         "space": None if p.space is None else str(p.space),
@@ -406,50 +572,47 @@ def _primitive_to_dict(p: Primitive, k: float) -> dict[str, Any]:
         "from": p.from_state,
         "to": p.to_state,
         "folded": [int(i) for i in p.folded],
-        "direction": _vec(p.direction),
-        "point": None if p.point is None else _vec(p.point, k),
-        "subspace": _rows(p.subspace),
+        "direction": rounded_list(p.direction),
+        "point": None if p.point is None else rounded_list(p.point, k),
+        "subspace": rounded_rows(p.subspace),
         "source": p.source,
         "target": {
             "state": p.target.state,
             "elements": _elements(p.target.elements, k),
-            "pose": _pose(p.target.X_EG, k),
+            "pose": pose_to_dict(p.target.X_EG, k),
         },
-        "stop": {
-            "force": _r(p.stop.force),
-            "torque": _r(p.stop.torque),
-            "travel": _r(p.stop.travel if rot else p.stop.travel * k),
-            "expected": _r(p.stop.expected if rot else p.stop.expected * k),
-        },
+        "stop": _stop_to_dict(p.stop, p.space == MotionSpace.ROTATION, k),
         "compliance": {
-            "center": _vec(c.center, k),
-            "force_directions": _rows(c.force_directions),
-            "forces": _vec(c.forces),
-            "torque_axes": _rows(c.torque_axes),
-            "torques": _vec(c.torques),
-            "position_directions": _rows(c.position_directions),
-            "position_axes": _rows(c.position_axes),
+            "center": rounded_list(c.center, k),
+            "force_directions": rounded_rows(c.force_directions),
+            "forces": rounded_list(c.forces),
+            "torque_axes": rounded_rows(c.torque_axes),
+            "torques": rounded_list(c.torques),
+            "position_directions": rounded_rows(c.position_directions),
+            "position_axes": rounded_rows(c.position_axes),
         },
-        "alignment": None,
-        "via": [_pose(X, k) for X in p.via],
+        "alignment": _alignment_to_dict(p.alignment, k),
+        "via": [pose_to_dict(X, k) for X in p.via],
+        "profile": None
+        if pr is None
+        else {
+            "speed": rounded(pr.speed * k),
+            "angular_speed": rounded(pr.angular_speed),
+            "slow_zone": rounded(pr.slow_zone * k),
+            "slow_speed": rounded(pr.slow_speed * k),
+        },
     }
-    if p.alignment is not None:
-        a = p.alignment
-        out["alignment"] = {
-            "translations": _rows(a.translations),
-            "rotations": _rows(a.rotations),
-            "tolerance": _r(a.tolerance * k),
-            "angular_tolerance": _r(a.angular_tolerance),
-        }
-    return out
 
 
-_LENGTH_PARAMETERS = ("standoff", "clearance", "travel_margin", "speed")
+_LENGTH_PARAMETERS = (
+    "standoff", "clearance", "travel_margin", "speed", "slow_zone", "slow_speed",
+    "reach_tolerance", "search_pitch", "search_radius", "search_speed", "search_drop",
+)  # fmt: skip
 
 
 def _parameters_to_dict(pp: PlanParameters, k: float) -> dict[str, float]:
     return {
-        name: _r(getattr(pp, name) * (k if name in _LENGTH_PARAMETERS else 1.0))
+        name: rounded(getattr(pp, name) * (k if name in _LENGTH_PARAMETERS else 1.0))
         for name in PlanParameters.__dataclass_fields__
     }
 
@@ -473,12 +636,12 @@ def program_to_dict(program: SkillProgram) -> dict[str, Any]:
         "schema": SCHEMA,
         "units": program.units,
         "frame": program.frame,
-        "task": _model_to_dict(program.task),
+        "task": model_to_dict(program.task),
         "models": {
-            "grasped": _model_to_dict(program.grasped),
-            "environment": _model_to_dict(program.environment),
+            "grasped": model_to_dict(program.grasped),
+            "environment": model_to_dict(program.environment),
         },
-        "start_pose": _pose(program.start_X_EG, k),
+        "start_pose": pose_to_dict(program.start_X_EG, k),
         "final_state": {
             "id": program.final_state,
             "elements": _elements(program.final_elements, k),
@@ -489,84 +652,17 @@ def program_to_dict(program: SkillProgram) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------------------------
-# From JSON, with validation
+# From JSON, with validation (apo.jsonform.JsonReader: messages name the file and the field)
 # --------------------------------------------------------------------------------------------
 
 
-class _MotionReader(_Reader):
-    """The task reader's typed accessors plus the shapes a skill program needs."""
-
-    def __init__(self, source: str) -> None:
-        super().__init__(source or "motion")
-
-    def positive(self, v: Any, where: str) -> float:
-        x = self.number(v, where)
-        if x <= 0:
-            raise self.fail(where, f"expected a positive number, got {x!r}")
-        return x
-
-    def non_negative(self, v: Any, where: str) -> float:
-        x = self.number(v, where)
-        if x < 0:
-            raise self.fail(where, f"expected a non-negative number, got {x!r}")
-        return x
-
-    def unit(self, v: Any, where: str, *, allow_zero: bool = False) -> FloatArray:
-        a = self.vector(v, where, 3)
-        n = float(np.linalg.norm(a))
-        if abs(n - 1.0) > 1e-4 and not (allow_zero and n < 1e-12):
-            raise self.fail(where, f"expected a unit vector, got {a.tolist()}")
-        return a
-
-    def rows(self, v: Any, where: str, *, orthonormal: bool = True) -> FloatArray:
-        items = self.lst(v, where)
-        if len(items) > 3:
-            raise self.fail(where, f"expected at most 3 rows, got {len(items)}")
-        a = np.array(
-            [self.vector(r, f"{where}[{i}]", 3) for i, r in enumerate(items)], dtype=float
-        ).reshape(-1, 3)
-        if orthonormal and a.size and not np.allclose(a @ a.T, np.eye(len(a)), atol=1e-4):
-            raise self.fail(where, "rows must be orthonormal unit vectors")
-        return a
-
-    def pose(self, v: Any, where: str, k: float) -> FloatArray:
-        d = self.obj(v, where)
-        p = self.vector(self.get(d, "position", where), f"{where}.position", 3) * k
-        q = self.vector(self.get(d, "quaternion", where), f"{where}.quaternion", 4)
-        if abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
-            raise self.fail(f"{where}.quaternion", f"not a unit quaternion: {q.tolist()}")
-        return pose_from_position_quaternion(p, q)
-
-    def elements(self, v: Any, where: str, k: float) -> tuple[Element, ...]:
-        out: list[Element] = []
-        for j, ed_ in enumerate(self.lst(v, where)):
-            we = f"{where}[{j}]"
-            ed = self.obj(ed_, we)
-            normals_l = self.lst(self.get(ed, "normals", we), f"{we}.normals")
-            if not normals_l:
-                raise self.fail(f"{we}.normals", "expected at least one normal")
-            normals = np.array(
-                [self.unit(n, f"{we}.normals[{m}]") for m, n in enumerate(normals_l)]
-            )
-            out.append(
-                Element(
-                    kind=self.string(self.get(ed, "kind", we), f"{we}.kind", KINDS),
-                    grasped=self.feature(self.get(ed, "grasped", we), f"{we}.grasped"),
-                    environment=self.feature(self.get(ed, "environment", we), f"{we}.environment"),
-                    point=self.vector(self.get(ed, "point", we), f"{we}.point", 3) * k,
-                    normals=normals,
-                )
-            )
-        return tuple(out)
-
-    def model(self, v: Any, where: str) -> ModelRef:
-        return _model_from_dict(self, v, where)
-
-    def optional_int(self, v: Any, where: str) -> int | None:
-        return None if v is None else self.integer(v, where)
+def _read_elements(rd: JsonReader, v: Any, where: str, k: float) -> tuple[Element, ...]:
+    return tuple(
+        element_from_dict(rd, e, f"{where}[{j}]", k) for j, e in enumerate(rd.lst(v, where))
+    )
 
 
-def _compliance_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> Compliance:
+def _compliance_from_dict(rd: JsonReader, v: Any, where: str, k: float) -> Compliance:
     d = rd.obj(v, where)
     parts = {
         name: rd.rows(rd.get(d, name, where), f"{where}.{name}")
@@ -586,7 +682,32 @@ def _compliance_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> Co
     )
 
 
-def _alignment_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> Alignment | None:
+def _search_from_dict(rd: JsonReader, v: Any, where: str, k: float) -> Search | None:
+    if v is None:
+        return None
+    d = rd.obj(v, where)
+    pattern = rd.string(rd.get(d, "pattern", where), f"{where}.pattern", SEARCH_PATTERNS)
+    directions = rd.rows(rd.get(d, "directions", where), f"{where}.directions")
+    if len(directions) != {"zigzag": 1, "spiral": 2, "none": 0}[pattern]:
+        raise rd.fail(f"{where}.directions", f"a {pattern} search needs "
+                      f"{ {'zigzag': 1, 'spiral': 2, 'none': 0}[pattern]} directions")  # fmt: skip
+
+    def length(name: str) -> float:
+        return rd.positive(rd.get(d, name, where), f"{where}.{name}") * k
+
+    return Search(
+        direction=rd.unit(rd.get(d, "direction", where), f"{where}.direction"),
+        force=rd.non_negative(rd.get(d, "force", where), f"{where}.force"),
+        pattern=pattern,
+        directions=directions,
+        pitch=length("pitch"),
+        radius=length("radius"),
+        speed=length("speed"),
+        drop=length("drop"),
+    )
+
+
+def _alignment_from_dict(rd: JsonReader, v: Any, where: str, k: float) -> Alignment | None:
     if v is None:
         return None
     d = rd.obj(v, where)
@@ -597,25 +718,55 @@ def _alignment_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> Ali
         angular_tolerance=rd.positive(
             rd.get(d, "angular_tolerance", where), f"{where}.angular_tolerance"
         ),
+        search=_search_from_dict(rd, d.get("search"), f"{where}.search", k),
     )
 
 
-def _stop_from_dict(rd: _MotionReader, v: Any, where: str, k: float) -> StopCondition:
+def _stop_from_dict(rd: JsonReader, v: Any, where: str, k: float, kt: float) -> StopCondition:
+    """Read a stop condition; ``kt`` scales its travels (1 for a rotation), ``k`` lengths."""
     d = rd.obj(v, where)
+    dflt = StopCondition(1.0, 1.0, 1.0)
+    until = tuple(
+        rd.string(x, f"{where}.until[{j}]", END_CONDITIONS)
+        for j, x in enumerate(rd.lst(d.get("until", []), f"{where}.until"))
+    )
+
+    def opt(name: str, scale: float = 1.0) -> float:
+        if name not in d:
+            return float(getattr(dflt, name))
+        return rd.non_negative(d[name], f"{where}.{name}") * scale
+
     return StopCondition(
         force=rd.positive(rd.get(d, "force", where), f"{where}.force"),
         torque=rd.positive(rd.get(d, "torque", where), f"{where}.torque"),
-        travel=rd.positive(rd.get(d, "travel", where), f"{where}.travel") * k,
-        expected=rd.non_negative(d.get("expected", 0.0), f"{where}.expected") * k,
+        travel=rd.positive(rd.get(d, "travel", where), f"{where}.travel") * kt,
+        expected=rd.non_negative(d.get("expected", 0.0), f"{where}.expected") * kt,
+        until=until,
+        tolerance=opt("tolerance", k),
+        angular_tolerance=opt("angular_tolerance"),
+        touch=opt("touch"),
+        confirm=opt("confirm"),
+        stall=opt("stall"),
+        collision=rd.boolean(d.get("collision", False), f"{where}.collision"),
     )
 
 
-def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primitive:
-    w = f"primitives[{i}]"
-    d = rd.obj(v, w)
-    index = rd.integer(rd.get(d, "index", w), f"{w}.index")
-    if index != i:
-        raise rd.fail(f"{w}.index", f"expected {i}, got {index}")
+def _profile_from_dict(rd: JsonReader, v: Any, where: str, k: float) -> Profile | None:
+    if v is None:
+        return None
+    d = rd.obj(v, where)
+    return Profile(
+        speed=rd.positive(rd.get(d, "speed", where), f"{where}.speed") * k,
+        angular_speed=rd.positive(rd.get(d, "angular_speed", where), f"{where}.angular_speed"),
+        slow_zone=rd.non_negative(d.get("slow_zone", 0.0), f"{where}.slow_zone") * k,
+        slow_speed=rd.non_negative(d.get("slow_speed", 0.0), f"{where}.slow_speed") * k,
+    )
+
+
+def _primitive_head(
+    rd: JsonReader, d: Any, w: str
+) -> tuple[PrimitiveKind, MotionSpace | None, RotationType | None, int | None]:
+    """Kind, space, type and transition of primitive ``w``, checked against each other."""
     kind = PrimitiveKind(rd.string(rd.get(d, "kind", w), f"{w}.kind", list(PrimitiveKind)))
     sp = rd.get(d, "space", w)
     space = None if sp is None else MotionSpace(rd.string(sp, f"{w}.space", list(MotionSpace)))
@@ -626,6 +777,16 @@ def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primiti
     tr = rd.optional_int(rd.get(d, "transition", w), f"{w}.transition")
     if (tr is None) != (kind == PrimitiveKind.APPROACH):
         raise rd.fail(f"{w}.transition", f"unexpected {tr!r} for a {kind} primitive")
+    return kind, space, rtype, tr
+
+
+def _primitive_from_dict(rd: JsonReader, v: Any, i: int, k: float) -> Primitive:
+    w = f"primitives[{i}]"
+    d = rd.obj(v, w)
+    index = rd.integer(rd.get(d, "index", w), f"{w}.index")
+    if index != i:
+        raise rd.fail(f"{w}.index", f"expected {i}, got {index}")
+    kind, space, rtype, tr = _primitive_head(rd, d, w)
     pt = d.get("point")
     td = rd.obj(rd.get(d, "target", w), f"{w}.target")
     travel_k = 1.0 if space == MotionSpace.ROTATION else k
@@ -650,20 +811,21 @@ def _primitive_from_dict(rd: _MotionReader, v: Any, i: int, k: float) -> Primiti
         source=rd.string(d.get("source", "none"), f"{w}.source"),
         target=Target(
             state=rd.string(rd.get(td, "state", f"{w}.target"), f"{w}.target.state"),
-            elements=rd.elements(td.get("elements", []), f"{w}.target.elements", k),
+            elements=_read_elements(rd, td.get("elements", []), f"{w}.target.elements", k),
             X_EG=rd.pose(rd.get(td, "pose", f"{w}.target"), f"{w}.target.pose", k),
         ),
-        stop=_stop_from_dict(rd, rd.get(d, "stop", w), f"{w}.stop", travel_k),
+        stop=_stop_from_dict(rd, rd.get(d, "stop", w), f"{w}.stop", k, travel_k),
         compliance=_compliance_from_dict(rd, rd.get(d, "compliance", w), f"{w}.compliance", k),
         alignment=alignment,
         via=tuple(
             rd.pose(X, f"{w}.via[{j}]", k)
             for j, X in enumerate(rd.lst(d.get("via", []), f"{w}.via"))
         ),
+        profile=_profile_from_dict(rd, d.get("profile"), f"{w}.profile", k),
     )
 
 
-def _parameters_from_dict(rd: _MotionReader, v: Any, k: float) -> PlanParameters:
+def _parameters_from_dict(rd: JsonReader, v: Any, k: float) -> PlanParameters:
     d = rd.obj(v, "parameters")
     values: dict[str, float] = {}
     for name in PlanParameters.__dataclass_fields__:
@@ -695,7 +857,7 @@ def program_from_dict(data: Any, *, source: str = "") -> SkillProgram:
         non-positive thresholds, primitives out of order. The message names ``source``
         and the field (e.g. ``motion.json: primitives[2].stop.force: ...``).
     """
-    rd = _MotionReader(source)
+    rd = JsonReader(source or "motion")
     d = rd.obj(data, "top level")
     schema = d.get("schema")
     if schema != SCHEMA:
@@ -711,12 +873,14 @@ def program_from_dict(data: Any, *, source: str = "") -> SkillProgram:
     return SkillProgram(
         units=units,
         frame=frame,
-        task=rd.model(rd.get(d, "task", "top level"), "task"),
-        grasped=rd.model(rd.get(models, "grasped", "models"), "models.grasped"),
-        environment=rd.model(rd.get(models, "environment", "models"), "models.environment"),
+        task=model_from_dict(rd, rd.get(d, "task", "top level"), "task"),
+        grasped=model_from_dict(rd, rd.get(models, "grasped", "models"), "models.grasped"),
+        environment=model_from_dict(
+            rd, rd.get(models, "environment", "models"), "models.environment"
+        ),
         start_X_EG=rd.pose(rd.get(d, "start_pose", "top level"), "start_pose", k),
         final_state=rd.string(rd.get(fs, "id", "final_state"), "final_state.id"),
-        final_elements=rd.elements(fs.get("elements", []), "final_state.elements", k),
+        final_elements=_read_elements(rd, fs.get("elements", []), "final_state.elements", k),
         parameters=_parameters_from_dict(rd, d.get("parameters", {}), k),
         primitives=tuple(_primitive_from_dict(rd, p, i, k) for i, p in enumerate(prims)),
     )

@@ -23,6 +23,7 @@ from apo.recognition.types import (
     Six,
     StateKey,
 )
+from apo.spatial import invert_pose
 from apo.task import Element, Rejected, State, SubSkill, Transition, state_letters
 from apo.transitions import analyze_transition
 
@@ -209,7 +210,7 @@ def build_states(
                 singular=bool(dof_r.singular),
                 fig25=cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25)),
                 six={sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")},
-                elements=tuple(element_record(e) for e in cand.state.elements),
+                elements=_at_pose(cand, X_s),
                 X_EG=np.asarray(X_s, dtype=np.float64).copy(),
                 pose_frame=frame,
                 pose_converged=converged,
@@ -218,6 +219,25 @@ def build_states(
         )
         first_id.setdefault(k, sid)
     return runs, ids, states
+
+
+def _at_pose(cand: CandidateState, X_s: FloatArray) -> tuple[Element, ...]:
+    """Return the candidate's elements with their points where they are at the pose ``X_s``.
+
+    The candidate's elements were found at its representative pose (``cand.X_EG``, shared by
+    every run of the same contact state), the state's pose is the best frame of this run: in
+    a sliding state the two lie far apart (a block slid 70 mm along a wall). A point on a
+    vertex or edge of the grasped object (kinds VF, VE, VV, EE) moves with it; a point on a
+    vertex of the environment (FV, EV) stays. So ``task.json``'s points hold at its poses.
+    """
+    T = X_s @ invert_pose(cand.X_EG)
+    out = []
+    for e in cand.state.elements:
+        r = element_record(e)
+        if r.kind not in ("FV", "EV"):
+            r = Element(r.kind, r.grasped, r.environment, T[:3, :3] @ r.point + T[:3, 3], r.normals)
+        out.append(r)
+    return tuple(out)
 
 
 def _state_pose(

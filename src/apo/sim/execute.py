@@ -1,25 +1,19 @@
 """Execution of a skill program (and of the observed poses) by the compliant hand.
 
-Each primitive of :class:`apo.motion.SkillProgram` becomes a run of control steps of
-:class:`apo.sim.hand.Hand` (the table in ``docs/sim.md`` is the reference):
+The executor interprets each primitive of :class:`apo.motion.SkillProgram` generically, as
+``docs/motion.md`` ("Executing a program") defines it for any robot controller; nothing here
+depends on the primitive's kind beyond what the program says:
 
-- ``approach``: position control through free space (lifting first); it ends at the target
-  within 0.2 mm; a contact force above the stop force is a collision.
-- ``push_to`` (translation): a guarded move under the plan's compliance (force along the
-  direction, holding forces into the kept contacts, the rest follows the path to the
-  planned target); it ends when the sensed reaction against the direction exceeds the stop
-  force; beyond the stop travel it fails.
-- ``push_to`` / ``slide`` (rotation): a position-controlled turn about the axis to the
-  target orientation (:data:`ROTATE_BY_POSITION`), ending there in contact or on the
-  reaction torque.
-- ``slide`` (translation): the plan's compliance; it ends when the expected travel is done
-  or on the reaction.
-- ``release``: position control away from the contact for the expected travel.
-- ``align``: turn to the planned orientation, then search the entrance by touch
-  (:func:`align_in_contact`).
-
-None of them stops on a time-out; a primitive that neither ends nor fails within
-``nominal time + STALL_TIME`` has stalled (jammed) and fails.
+- the hand follows the primitive's nominal path from its current pose through the ``via``
+  poses to ``target.pose`` (:func:`nominal_path`: the compliance centre, or the pivot
+  ``point`` of a rotational sub-skill, on straight lines, the orientation slerped about it,
+  smoothstep time law at the primitive's ``profile`` speeds), with an ``align``'s search
+  sweep (:func:`search_sweep`) added to the position once the path is over;
+- under the primitive's ``compliance``: force-controlled rows apply ``forces`` /
+  ``torques`` about the centre, position-controlled rows track the path;
+- it ends well as soon as one of ``stop.until`` holds for ``stop.confirm`` seconds
+  (:func:`_ended`), and fails beyond ``stop.travel``, on a collision (``stop.collision``),
+  or after the nominal path plus ``stop.stall`` seconds (jammed).
 
 Playback (:func:`run_playback`): the observed poses are followed by position control with the
 same impedance, without force control or guarded stops (the baseline of the benchmark).
@@ -36,43 +30,23 @@ import numpy as np
 from apo.sim.hand import Hand
 from apo.typing import FloatArray
 
-__all__ = ["STALL_TIME", "PrimitiveRun", "run_playback", "run_program"]
+__all__ = ["PrimitiveRun", "nominal_path", "run_playback", "run_program", "search_sweep"]
 
-STALL_TIME = 3.0
-"""Seconds a primitive may run beyond its nominal duration before it counts as jammed."""
-FREE_SPEED_FACTOR = 4.0
-"""Approaches move through free space this many times faster than the plan's speeds."""
-ROTATE_BY_POSITION = True
-"""Execute rotational push-to and slide by a position-controlled turn about their axis to
-the target orientation (everything else as the plan's compliance says). With a pure torque
-(False) a type I push-to only tips the object over an end of its contact and a slide wedged
-the T-peg in the slot under a 1 mm environment offset."""
-_CONFIRM = 10
-"""Steps a stop condition must hold in a row (filters contact impacts)."""
-_REACH_TOL = 2e-4
-"""Position tolerance (m) of approach targets; rotations: _REACH_TOL / object size."""
 _SETTLE = 0.05
-"""Seconds of holding after each primitive."""
-_TOUCH = 0.5
-"""Contact force (N) that counts as touching at the end of a rotational push-to."""
-_SLOW_ZONE = 0.003
-"""Metres before the expected end of a translational push-to where it slows down (the
-environment's offset is unknown, up to a millimetre or so)."""
-_SLOW_FACTOR = 4.0
-"""Damping factor there: a 5 N push arrives at 5 mm/s instead of 20 mm/s."""
-SEARCH_PITCH = 0.0002
-"""Metres between the passes of the alignment search (at most twice the clearance)."""
-SEARCH_RADIUS = 0.002
-"""Metres: how far the alignment search reaches (the environment's offset is up to 1 mm)."""
-SEARCH_SPEED = 0.004
-"""Metres per second of the alignment search."""
-SEARCH_DROP = 0.001
-"""Metres the object must move along the entrance for the search to have found it."""
-_ANGLE_MARGIN = 0.087
-"""Radians added to the angle of a position-controlled turn for its travel limit."""
-_ANGLE_TOL = 0.035
-"""Radians: a position-controlled rotational slide has arrived when this close to its target
-orientation about the axis (the plan's orientation may be off by the environment's offset)."""
+"""Seconds of holding after a playback."""
+_SEARCH_GRACE = 0.5
+"""Seconds an alignment search waits for the drop after its sweep ends."""
+_LEGACY_UNTIL = {
+    ("approach", False): ("pose",),
+    ("align", False): ("entrance",),
+    ("push_to", False): ("force",),
+    ("push_to", True): ("pose_in_contact", "torque"),
+    ("slide", False): ("force", "expected"),
+    ("slide", True): ("pose", "torque"),
+    ("release", False): ("expected", "pose"),
+    ("release", True): ("expected", "pose"),
+}
+"""End conditions of programs written before ``stop.until`` existed (``docs/motion.md``)."""
 
 
 @dataclass
@@ -156,25 +130,9 @@ def _path(
     return _Path(X0, X1, center_G, T)
 
 
-def _without_axis(S: FloatArray, d: FloatArray) -> FloatArray:
-    """Projector on span(S) minus its component along d."""
-    B = _basis(S)
-    B = B - np.outer(B @ d, d)
-    return _projector(B)
-
-
 def _basis(S: FloatArray) -> FloatArray:
     w, V = np.linalg.eigh(S)
     out: FloatArray = V[:, w > 0.5].T
-    return out
-
-
-def _projector(rows: FloatArray) -> FloatArray:
-    if rows.size == 0:
-        return np.zeros((3, 3))
-    u, sv, _ = np.linalg.svd(rows.T, full_matrices=False)
-    U = u[:, sv > 1e-9 * max(1.0, float(sv.max()))]
-    out: FloatArray = U @ U.T
     return out
 
 
@@ -196,48 +154,6 @@ class _Chain:
         return self.legs[-1].at(t)
 
 
-def _approach_path(
-    prim: Any,
-    X0: FloatArray,
-    center_G: FloatArray,
-    speeds: tuple[float, float],
-    up: FloatArray | None,
-) -> _Chain:
-    """Path of an approach: through the primitive's ``via`` poses if any, else lift first.
-
-    Without via poses the object first moves along ``up`` (the reverse of the first
-    translational push-to that follows) until it is level with the stand-off pose, then goes
-    straight: leaving a resting place sideways through the environment is the usual way a
-    straight approach collides.
-    """
-    goals = [np.asarray(X, dtype=np.float64) for X in getattr(prim, "via", ())]
-    goals.append(prim.target.X_EG)
-    if not goals[:-1] and up is not None and np.linalg.norm(up) > 0:
-        c0 = X0[:3, :3] @ center_G + X0[:3, 3]
-        c1 = goals[-1][:3, :3] @ center_G + goals[-1][:3, 3]
-        rise = float((c1 - c0) @ up)
-        if rise > 0:
-            X_up = X0.copy()
-            X_up[:3, 3] += rise * np.asarray(up)
-            goals.insert(0, X_up)
-    legs, X_prev = [], X0
-    for X in goals:
-        legs.append(_path(X_prev, X, center_G, *speeds))
-        X_prev = X
-    return _Chain(legs)
-
-
-def _via_path(
-    prim: Any, X0: FloatArray, center_G: FloatArray, speeds: tuple[float, float]
-) -> _Chain:
-    """Path through the poses of the folded transitions (``prim.via``) to the target."""
-    legs, X_prev = [], X0
-    for X in [*(np.asarray(v, dtype=np.float64) for v in prim.via), prim.target.X_EG]:
-        legs.append(_path(X_prev, X, center_G, *speeds))
-        X_prev = X
-    return _Chain(legs)
-
-
 def _to_G(X: FloatArray, p: FloatArray) -> FloatArray:
     out: FloatArray = X[:3, :3].T @ (p - X[:3, 3])
     return out
@@ -249,227 +165,29 @@ def _angle_about(R0: FloatArray, R: FloatArray, axis: FloatArray) -> float:
     return float(Rotation.from_matrix(R @ R0.T).as_rotvec() @ axis)
 
 
-def _hold(hand: Hand, prim: Any, X: FloatArray, center_G: FloatArray, sample: Sampler) -> None:
-    """Keep the primitive's compliance at pose ``X`` for :data:`_SETTLE` seconds."""
-    comp = prim.compliance
-    St, Sr = comp.force_directions.T @ comp.force_directions, comp.torque_axes.T @ comp.torque_axes
-    f, t = comp.force_directions.T @ comp.forces, comp.torque_axes.T @ comp.torques
-    n = round(_SETTLE / hand.scene.params.timestep)
-    for _ in range(n):
-        hand.step(X, center_G, S_t=St, S_r=Sr, force=f, torque=t)
-        sample(hand)
+def _speeds(prim: Any, pp: Any) -> tuple[float, float]:
+    """Return the path speeds (m/s, rad/s): the primitive's ``profile``, else the plan's."""
+    pr = getattr(prim, "profile", None)
+    if pr is not None:
+        return float(pr.speed), float(pr.angular_speed)
+    f = getattr(pp, "free_speed_factor", 4.0) if str(prim.kind) == "approach" else 1.0
+    return f * pp.speed, f * pp.angular_speed
 
 
-def _expected(prim: Any, X_from: FloatArray, center_G: FloatArray) -> float:
-    """Return the expected travel of a primitive (metres or radians), from the plan."""
-    e = getattr(prim.stop, "expected", None)
-    if e is not None:
-        return float(e)
-    d = prim.direction
-    X1 = prim.target.X_EG
-    if prim.space is not None and str(prim.space) == "rotation":
-        return abs(_angle_about(X_from[:3, :3], X1[:3, :3], d))
-    c0 = X_from[:3, :3] @ center_G + X_from[:3, 3]
-    c1 = X1[:3, :3] @ center_G + X1[:3, 3]
-    return abs(float((c1 - c0) @ d))
+def nominal_path(
+    prim: Any, X0: FloatArray, point_G: FloatArray, speeds: tuple[float, float]
+) -> tuple[_Chain, float]:
+    """Return the primitive's path from ``X0`` through its ``via`` poses to its target.
 
-
-def run_primitive(
-    hand: Hand,
-    prim: Any,
-    X_plan: FloatArray,
-    speeds: tuple[float, float],
-    sample: Sampler,
-    up: FloatArray | None = None,
-) -> PrimitiveRun:
-    """Execute one primitive from the hand's current pose; return what happened.
-
-    ``X_plan`` is the planned pose at the primitive's start (for the expected travel);
-    ``speeds`` the plan's ``(speed m/s, angular_speed rad/s)``; ``up`` the direction an
-    approach leaves along first (:func:`_approach_path`).
+    ``point_G`` (object frame) moves on straight lines while the orientation turns about it
+    (the compliance centre; the pivot of a rotational sub-skill). Returns the path and the
+    time at which its last leg starts (guarded stops and travel count from there).
     """
-    kind = str(prim.kind)
-    comp = prim.compliance
-    X0 = hand.pose()
-    center_G = _to_G(prim.target.X_EG, comp.center)
-    path: _Path | _Chain = _path(X0, prim.target.X_EG, center_G, *speeds)
-    guard_from = 0.0  # guarded stops apply once the via poses (folded transitions) are passed
-    if kind == "approach":
-        free = (FREE_SPEED_FACTOR * speeds[0], FREE_SPEED_FACTOR * speeds[1])
-        path = _approach_path(prim, X0, center_G, free, up)
-    elif len(getattr(prim, "via", ())):
-        path = _via_path(prim, X0, center_G, speeds)
-        guard_from = sum(p.duration for p in path.legs[:-1])
-    St = comp.force_directions.T @ comp.force_directions
-    Sr = comp.torque_axes.T @ comp.torque_axes
-    f_cmd = comp.force_directions.T @ comp.forces
-    t_cmd = comp.torque_axes.T @ comp.torques
-    d = np.asarray(prim.direction, dtype=np.float64)
-    rot = prim.space is not None and str(prim.space) == "rotation"
-    # rotational push-to and slide turn about their axis by position control (docs/sim.md)
-    turn = kind in ("slide", "push_to") and rot and ROTATE_BY_POSITION
-    travel_limit = prim.stop.travel
-    if turn:
-        # the turn goes to the target orientation whatever the sign of the recorded axis:
-        # its safeguard is the angle to that orientation (plus the plan's margin)
-        to_go = abs(_angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d))
-        travel_limit = max(travel_limit, to_go + _ANGLE_MARGIN)
-        d = d if _angle_about(X0[:3, :3], prim.target.X_EG[:3, :3], d) >= 0 else -d
-        t_cmd = t_cmd - d * (d @ t_cmd)
-        Sr = _without_axis(Sr, d)
-    c_start = X0[:3, :3] @ center_G + X0[:3, 3]
-    X_g = X0
-    expected = _expected(prim, X_plan, center_G)
-    t0 = hand.time
-    limit = path.duration + STALL_TIME
-    streak, outcome, travel = 0, "stall", 0.0
-    Fc, Tc = np.zeros(3), np.zeros(3)
-    dt = hand.scene.params.timestep
-    size = max(1e-3, float(np.linalg.norm(center_G)))
-    while hand.time - t0 < limit:
-        X_des = path.at(hand.time - t0)
-        slow = 1.0
-        if kind == "push_to" and not rot and travel > expected - _SLOW_ZONE:
-            slow = _SLOW_FACTOR  # the contact is near: arrive gently
-        Fc, Tc = hand.step(X_des, center_G, S_t=St, S_r=Sr, force=f_cmd, torque=t_cmd, slow=slow)
-        sample(hand)
-        X = hand.pose()
-        c = X[:3, :3] @ center_G + X[:3, 3]
-        if guard_from > 0 and hand.time - t0 < guard_from:
-            X_g, c_start = X, c  # travel counts from the end of the via poses
-        travel = _angle_about(X_g[:3, :3], X[:3, :3], d) if rot else float((c - c_start) @ d)
-        if kind in ("approach", "align"):
-            if kind == "approach" and np.linalg.norm(Fc) > prim.stop.force:
-                outcome = "collision"
-                break
-            done = hand.time - t0 >= path.duration and _reached(prim, X, center_G, size)
-        elif kind == "release":
-            done = travel >= expected and hand.time - t0 >= path.duration
-        else:
-            if kind == "push_to" and turn:
-                # arrived at the planned orientation in contact, or stopped by a contact
-                arrived = hand.time - t0 >= path.duration and (
-                    abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
-                )
-                hit = (arrived and np.linalg.norm(Fc) >= _TOUCH) or (
-                    float(-(Tc @ d)) >= prim.stop.torque
-                )
-            elif rot:
-                hit = float(-(Tc @ d)) >= prim.stop.torque
-            else:
-                hit = float(-(Fc @ d)) >= prim.stop.force
-            if hit and hand.time - t0 >= guard_from:
-                streak += 1
-            else:
-                streak = 0
-            if streak >= _CONFIRM:
-                outcome = "contact"
-                break
-            if abs(travel) > travel_limit:
-                outcome = "travel"
-                break
-            if kind == "slide" and turn:
-                # arrived at the planned orientation about the axis (within the offset)
-                done = hand.time - t0 >= path.duration and (
-                    abs(_angle_about(X[:3, :3], prim.target.X_EG[:3, :3], d)) <= _ANGLE_TOL
-                )
-            else:
-                done = kind == "slide" and travel >= expected
-        if done:
-            outcome = "reached"
-            break
-    del dt
-    if outcome in ("contact", "reached"):
-        _hold(hand, prim, hand.pose(), center_G, sample)
-    return PrimitiveRun(
-        prim.index,
-        kind,
-        outcome,
-        t0,
-        hand.time,
-        float(travel),
-        float(np.linalg.norm(Fc)),
-        float(np.linalg.norm(Tc)),
-    )
-
-
-def _reached(prim: Any, X: FloatArray, center_G: FloatArray, size: float) -> bool:
-    """Target pose reached (align: within its tolerance in its directions)."""
-    from scipy.spatial.transform import Rotation
-
-    X1 = prim.target.X_EG
-    e_p = (X1[:3, :3] @ center_G + X1[:3, 3]) - (X[:3, :3] @ center_G + X[:3, 3])
-    e_r = Rotation.from_matrix(X1[:3, :3] @ X[:3, :3].T).as_rotvec()
-    al = prim.alignment
-    if al is not None:
-        ok_t = not len(al.translations) or np.max(np.abs(al.translations @ e_p)) <= al.tolerance
-        ok_r = not len(al.rotations) or np.max(np.abs(al.rotations @ e_r)) <= al.angular_tolerance
-        return bool(ok_t and ok_r)
-    return bool(np.linalg.norm(e_p) <= _REACH_TOL and np.linalg.norm(e_r) <= _REACH_TOL / size)
-
-
-def align_in_contact(
-    hand: Hand, prim: Any, entrance: FloatArray, push: float, angular: float, sample: Sampler
-) -> PrimitiveRun:
-    """Align: turn to the planned orientation, then search the entrance by touch.
-
-    1. The orientation turns (position control, at the plan's angular speed) to the planned
-       one about the object's leading point (the middle of its points farthest along
-       ``entrance``), so the part that enters first stays at the entrance; a pure offset
-       of the environment does not change the orientation, and a rotation of a degree is
-       left to the compliance of the next move.
-    2. The object is pushed lightly (``push`` N) along ``entrance`` while its position
-       sweeps the alignment directions in a widening zig-zag (one direction) or square
-       spiral (two) of pitch :data:`SEARCH_PITCH` up to :data:`SEARCH_RADIUS`, at
-       :data:`SEARCH_SPEED`. It ends as soon as the object has dropped
-       :data:`SEARCH_DROP` along ``entrance`` (the entrance is found: the next, critical,
-       move follows); a sweep that ends without it has failed (``stall``).
-
-    The plan's aligned position is not used: the environment's offset is unknown and
-    larger than the clearance, so only contact can tell where the entrance is.
-    """
-    al = prim.alignment
-    X0 = hand.pose()
-    center_G = _leading_point(hand, X0, entrance)
-    if center_G is None:
-        center_G = _to_G(prim.target.X_EG, prim.compliance.center)
-    X1 = X0.copy()
-    X1[:3, :3] = prim.target.X_EG[:3, :3]
-    X1[:3, 3] = X0[:3, :3] @ center_G + X0[:3, 3] - X1[:3, :3] @ center_G
-    turn = _path(X0, X1, center_G, 1.0, angular)
-    E = _projector(entrance.reshape(1, 3)) if np.linalg.norm(entrance) > 0 else np.zeros((3, 3))
-    U = al.translations.reshape(-1, 3)
-    U = U - (U @ E)  # sweep across the entrance direction only
-    # the search is centred on the plan's aligned position (off by the environment's offset)
-    c_plan = prim.target.X_EG[:3, :3] @ center_G + prim.target.X_EG[:3, 3]
-    c_turn = X1[:3, :3] @ center_G + X1[:3, 3]
-    sweep = _sweep(U, _projector(U) @ (c_plan - c_turn) if len(U) else np.zeros(3))
-    f = push * entrance
-    t0 = hand.time
-    Fc, Tc = np.zeros(3), np.zeros(3)
-    c_start: FloatArray | None = None
-    outcome = "stall"
-    while hand.time - t0 < turn.duration + sweep.duration + STALL_TIME:
-        t = hand.time - t0
-        X_des = turn.at(t)
-        if t >= turn.duration:
-            X_des = X_des.copy()
-            X_des[:3, 3] += sweep.at(t - turn.duration)
-        Fc, Tc = hand.step(X_des, center_G, S_t=E, force=f)
-        sample(hand)
-        X = hand.pose()
-        c = X[:3, :3] @ center_G + X[:3, 3]
-        if t < turn.duration:
-            continue
-        if c_start is None:
-            c_start = c
-        if float((c - c_start) @ entrance) >= SEARCH_DROP:
-            outcome = "reached"
-            break
-        if t - turn.duration > sweep.duration + 0.5:
-            break
-    return PrimitiveRun(prim.index, "align", outcome, t0, hand.time, 0.0,
-                        float(np.linalg.norm(Fc)), float(np.linalg.norm(Tc)))  # fmt: skip
+    legs, X_prev = [], X0
+    for X in [*(np.asarray(v, dtype=np.float64) for v in prim.via), prim.target.X_EG]:
+        legs.append(_path(X_prev, X, point_G, *speeds))
+        X_prev = X
+    return _Chain(legs), sum(p.duration for p in legs[:-1])
 
 
 @dataclass
@@ -495,74 +213,223 @@ class _Sweep:
         return last
 
 
-def _sweep(U: FloatArray, start: FloatArray) -> _Sweep:
-    """Zig-zag (one direction) or square spiral (two) over the rows of ``U`` about ``start``."""
-    B = _basis(U.T @ U) if len(U) else np.zeros((0, 3))
-    n = int(SEARCH_RADIUS / SEARCH_PITCH)
+def search_sweep(search: Any) -> _Sweep:
+    """Offsets of an alignment search (``Search``): zig-zag, square spiral, or none."""
+    B = np.asarray(search.directions, dtype=np.float64).reshape(-1, 3)
+    pitch, radius = float(search.pitch), float(search.radius)
+    n = round(radius / pitch)
     pts: list[FloatArray] = [np.zeros(3)]
-    if len(B) == 1:
+    if search.pattern == "zigzag":
         for k in range(1, n + 1):
-            pts.append(((-1) ** k) * k * SEARCH_PITCH * B[0])
-    elif len(B) >= 2:
+            pts.append(((-1) ** k) * k * pitch * B[0])
+    elif search.pattern == "spiral":
         x = y = 0.0
         step, k = 1, 0
-        while max(abs(x), abs(y)) < SEARCH_RADIUS:
+        while max(abs(x), abs(y)) < radius - 1e-12:
             for axis in range(2):
                 sign = 1 if k % 2 == 0 else -1
                 if axis == 0:
-                    x += sign * step * SEARCH_PITCH
+                    x += sign * step * pitch
                 else:
-                    y += sign * step * SEARCH_PITCH
+                    y += sign * step * pitch
                 pts.append(x * B[0] + y * B[1])
             step, k = step + 1, k + 1
-    return _Sweep(np.vstack([np.zeros(3), start + np.array(pts)]), SEARCH_SPEED)
+    return _Sweep(np.array(pts), float(search.speed))
 
 
-def _leading_point(hand: Hand, X: FloatArray, entrance: FloatArray) -> FloatArray | None:
-    """Middle of the object's vertices within 1 mm of its farthest along ``entrance`` (G)."""
-    if not np.linalg.norm(entrance) > 0:
-        return None
-    V = np.concatenate([p.vertices for p in hand.scene.pieces["grasped"].pieces])
-    s = (V @ X[:3, :3].T) @ entrance
-    lead: FloatArray = V[s >= s.max() - 1e-3].mean(axis=0)
-    return lead
+@dataclass
+class _Control:
+    """What the hand is told every step of a primitive (world frame, SI)."""
+
+    center_G: FloatArray
+    S_t: FloatArray
+    S_r: FloatArray
+    force: FloatArray
+    torque: FloatArray
+
+    @classmethod
+    def of(cls, prim: Any) -> _Control:
+        c = prim.compliance
+        return cls(
+            center_G=_to_G(prim.target.X_EG, np.asarray(c.center, dtype=np.float64)),
+            S_t=c.force_directions.T @ c.force_directions,
+            S_r=c.torque_axes.T @ c.torque_axes,
+            force=c.force_directions.T @ c.forces,
+            torque=c.torque_axes.T @ c.torques,
+        )
 
 
-def _entrance(program: Any, k: int) -> FloatArray:
-    """Direction of the first translational move after primitive ``k`` (zeros if none)."""
-    for p in program.primitives[k + 1 :]:
-        if p.space is not None and str(p.space) == "translation":
-            return np.asarray(p.direction, dtype=np.float64)
-    return np.zeros(3)
+@dataclass
+class _Watch:
+    """What a primitive has done so far: the quantities its stop conditions look at."""
+
+    t0: float
+    guard_from: float
+    path_time: float
+    X_start: FloatArray
+    c_start: FloatArray
+    travel: float = 0.0
+    drop: float = 0.0
+    c_search: FloatArray | None = None
+    streak: int = 0
+    force: FloatArray = field(default_factory=lambda: np.zeros(3))
+    torque: FloatArray = field(default_factory=lambda: np.zeros(3))
+
+
+def _until(prim: Any) -> tuple[str, ...]:
+    until = tuple(getattr(prim.stop, "until", ()) or ())
+    return until or _LEGACY_UNTIL.get((str(prim.kind), _rotational(prim)), ("pose",))
+
+
+def _rotational(prim: Any) -> bool:
+    return prim.space is not None and str(prim.space) == "rotation"
+
+
+def _pose_within(prim: Any, X: FloatArray, ctl: _Control) -> bool:
+    """Return whether the pose error is within tolerance in the primitive's own directions."""
+    from scipy.spatial.transform import Rotation
+
+    X1 = prim.target.X_EG
+    e_p = (X1[:3, :3] @ ctl.center_G + X1[:3, 3]) - (X[:3, :3] @ ctl.center_G + X[:3, 3])
+    e_r = Rotation.from_matrix(X1[:3, :3] @ X[:3, :3].T).as_rotvec()
+    al, st = prim.alignment, prim.stop
+    d = np.asarray(prim.direction, dtype=np.float64)
+    if al is not None:
+        ok_t = not len(al.translations) or np.max(np.abs(al.translations @ e_p)) <= al.tolerance
+        ok_r = not len(al.rotations) or np.max(np.abs(al.rotations @ e_r)) <= al.angular_tolerance
+        return bool(ok_t and ok_r)
+    if prim.space is None or not np.any(d):
+        return bool(
+            np.linalg.norm(e_p) <= st.tolerance and np.linalg.norm(e_r) <= st.angular_tolerance
+        )
+    if _rotational(prim):
+        return abs(float(e_r @ d)) <= float(st.angular_tolerance)
+    return abs(float(e_p @ d)) <= float(st.tolerance)
+
+
+def _holds(name: str, prim: Any, w: _Watch, X: FloatArray, ctl: _Control, t: float) -> bool:
+    """Return whether the end condition ``name`` (``apo.motion.END_CONDITIONS``) holds now."""
+    st = prim.stop
+    d = np.asarray(prim.direction, dtype=np.float64)
+    if name == "force":
+        return float(-(w.force @ d)) >= float(st.force)
+    if name == "torque":
+        return float(-(w.torque @ d)) >= float(st.torque)
+    if name == "expected":
+        return w.travel >= float(st.expected)
+    if name == "entrance":
+        return w.drop >= float(prim.alignment.search.drop)
+    over = t >= w.path_time
+    if name == "pose":
+        return over and _pose_within(prim, X, ctl)
+    if name == "pose_in_contact":
+        touching = float(np.linalg.norm(w.force)) >= st.touch
+        return over and touching and _pose_within(prim, X, ctl)
+    raise ValueError(f"unknown end condition {name!r}")
+
+
+def _sense(prim: Any, ctl: _Control, w: _Watch, X: FloatArray, t: float) -> None:
+    """Update travel and drop; the reaction torque about the axis (through ``point``)."""
+    c = X[:3, :3] @ ctl.center_G + X[:3, 3]
+    if t < w.guard_from:  # travel counts from the end of the via poses
+        w.X_start, w.c_start = X, c
+    d = np.asarray(prim.direction, dtype=np.float64)
+    if _rotational(prim):
+        w.travel = _angle_about(w.X_start[:3, :3], X[:3, :3], d)
+        if prim.point is not None:  # torque about the axis through the pivot
+            w.torque = w.torque + np.cross(c - np.asarray(prim.point), w.force)
+    else:
+        w.travel = float((c - w.c_start) @ d)
+    al = prim.alignment
+    if al is not None and al.search is not None and t >= w.path_time:
+        if w.c_search is None:  # the search starts where the path ends
+            w.c_search = c
+        w.drop = float((c - w.c_search) @ np.asarray(al.search.direction))
+
+
+def _verdict(prim: Any, w: _Watch, X: FloatArray, ctl: _Control, t: float, dt: float) -> str | None:
+    """``"contact"``/``"reached"`` (ended well), a failure, or None (go on)."""
+    st = prim.stop
+    if getattr(st, "collision", str(prim.kind) == "approach") and (
+        float(np.linalg.norm(w.force)) > st.force
+    ):
+        return "collision"
+    if t >= w.guard_from and any(_holds(n, prim, w, X, ctl, t) for n in _until(prim)):
+        w.streak += 1
+    else:
+        w.streak = 0
+    if w.streak >= max(1, round(getattr(st, "confirm", 0.01) / dt)):
+        reactive = {"force", "torque"} & set(_until(prim))
+        hit = any(_holds(n, prim, w, X, ctl, t) for n in reactive)
+        return "contact" if hit else "reached"
+    if np.any(prim.direction) and prim.space is not None and abs(w.travel) > st.travel:
+        return "travel"
+    return None
+
+
+def _hold(hand: Hand, ctl: _Control, X: FloatArray, seconds: float, sample: Sampler) -> None:
+    """Keep the primitive's compliance at pose ``X`` for ``seconds``."""
+    for _ in range(round(seconds / hand.scene.params.timestep)):
+        hand.step(X, ctl.center_G, S_t=ctl.S_t, S_r=ctl.S_r, force=ctl.force, torque=ctl.torque)
+        sample(hand)
+
+
+def run_primitive(hand: Hand, prim: Any, pp: Any, sample: Sampler) -> PrimitiveRun:
+    """Execute one primitive from the hand's current pose, as the program says.
+
+    ``pp`` are the program's ``PlanParameters`` (speeds of programs without ``profile``,
+    the settle time).
+    """
+    ctl = _Control.of(prim)
+    X0 = hand.pose()
+    pivot_G = ctl.center_G
+    if _rotational(prim) and prim.point is not None:
+        pivot_G = _to_G(prim.target.X_EG, np.asarray(prim.point, dtype=np.float64))
+    path, guard_from = nominal_path(prim, X0, pivot_G, _speeds(prim, pp))
+    al = prim.alignment
+    sweep = search_sweep(al.search) if al is not None and al.search is not None else None
+    c0 = X0[:3, :3] @ ctl.center_G + X0[:3, 3]
+    w = _Watch(hand.time, guard_from, path.duration, X0, c0)
+    pr = getattr(prim, "profile", None)
+    slow_zone = float(pr.slow_zone) if pr is not None else 0.0
+    slow = float(pr.speed / pr.slow_speed) if pr is not None and pr.slow_speed > 0 else 1.0
+    extra = sweep.duration + _SEARCH_GRACE if sweep is not None else 0.0
+    limit = path.duration + extra + float(getattr(prim.stop, "stall", 3.0))
+    outcome, dt = "stall", hand.scene.params.timestep
+    while hand.time - w.t0 < limit:
+        t = hand.time - w.t0
+        X_des = path.at(t)
+        if sweep is not None and t >= path.duration:
+            X_des = X_des.copy()
+            X_des[:3, 3] += sweep.at(t - path.duration)
+            if t > path.duration + extra:
+                break  # the search swept everything without finding the entrance
+        near = slow_zone > 0 and w.travel > prim.stop.expected - slow_zone
+        w.force, w.torque = hand.step(
+            X_des, ctl.center_G, S_t=ctl.S_t, S_r=ctl.S_r, force=ctl.force, torque=ctl.torque,
+            slow=slow if near else 1.0,
+        )  # fmt: skip
+        sample(hand)
+        X = hand.pose()
+        _sense(prim, ctl, w, X, t)
+        verdict = _verdict(prim, w, X, ctl, t, dt)
+        if verdict is not None:
+            outcome = verdict
+            break
+    if outcome in ("contact", "reached"):
+        _hold(hand, ctl, hand.pose(), float(getattr(pp, "settle_time", _SETTLE)), sample)
+    return PrimitiveRun(
+        prim.index, str(prim.kind), outcome, w.t0, hand.time, float(w.travel),
+        float(np.linalg.norm(w.force)), float(np.linalg.norm(w.torque)),
+    )  # fmt: skip
 
 
 def run_program(hand: Hand, program: Any, sample: Sampler) -> list[PrimitiveRun]:
-    """Execute every primitive of ``program`` in order; stop at the first failure.
-
-    An ``align`` aligns by compliance (:func:`align_in_contact`), not by servoing to the
-    planned aligned pose: with an environment the plan does not know exactly (an offset
-    larger than the clearance), only the contacts can tell where the entrance is, and the
-    object may already have passed it during the previous move.
-    """
-    pp = program.parameters
-    speeds = (pp.speed, pp.angular_speed)
+    """Execute every primitive of ``program`` in order; stop at the first failure."""
     runs: list[PrimitiveRun] = []
-    X_plan = program.start_X_EG
-    pushes = [
-        p.direction
-        for p in program.primitives
-        if str(p.kind) == "push_to" and p.space is not None and str(p.space) == "translation"
-    ]
-    up = -np.asarray(pushes[0], dtype=np.float64) if pushes else None
-    for k, prim in enumerate(program.primitives):
-        if str(prim.kind) == "align" and prim.alignment is not None:
-            run = align_in_contact(
-                hand, prim, _entrance(program, k), pp.hold_force, pp.angular_speed, sample
-            )
-        else:
-            run = run_primitive(hand, prim, X_plan, speeds, sample, up)
+    for prim in program.primitives:
+        run = run_primitive(hand, prim, program.parameters, sample)
         runs.append(run)
-        X_plan = prim.target.X_EG
         if not run.ok:
             break
     return runs

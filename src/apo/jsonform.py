@@ -1,0 +1,204 @@
+"""Typed reading and rounded writing of apo's JSON documents (``task.json``, ``motion.json``).
+
+Pure: dictionaries and lists in, numbers and arrays out; no file I/O (the readers of files
+are in :mod:`apo.io`). Every document reader of apo (:func:`apo.task.task_from_dict`,
+:func:`apo.motion.program_from_dict`) reads its fields through one :class:`JsonReader`, so a
+wrong field always gives the same kind of message: an :class:`apo.errors.InputFormatError`
+``"<source>: <field path>: <problem>"``, e.g. ``motion.json: primitives[2].stop.force:
+expected a positive number, got 0.0``. Writers round numbers with :func:`rounded` (9
+decimals: repeated runs write identical files, and 1e-9 of a millimetre or radian is far
+below any tolerance of the method).
+
+>>> rd = JsonReader("task.json")
+>>> rd.vector([1, 2, 3], "states[0].pose.position", 3)
+array([1., 2., 3.])
+>>> rd.positive(0, "parameters.standoff")
+Traceback (most recent call last):
+...
+apo.errors.InputFormatError: task.json: parameters.standoff: expected a positive number, got 0.0
+>>> rounded_list([0.1 + 0.2, 1 / 3], 1000.0)
+[300.0, 333.333333333]
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from apo.errors import InputFormatError
+from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
+from apo.typing import FloatArray
+
+__all__ = [
+    "JsonReader",
+    "pose_to_dict",
+    "rounded",
+    "rounded_list",
+    "rounded_rows",
+]
+
+_UNIT_TOLERANCE = 1e-4
+"""Largest deviation of a written unit vector's norm (or rows' Gram matrix) from 1 (and the
+identity): files round to 9 decimals, hand-edited files to a few more than 4."""
+_QUATERNION_TOLERANCE = 1e-6
+"""Largest deviation of a written pose quaternion's norm from 1."""
+
+
+def rounded(x: float, nd: int = 9) -> float:
+    """Return ``x`` as a float rounded to ``nd`` decimals (for JSON output)."""
+    return float(round(float(x), nd))
+
+
+def rounded_list(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
+    """Return the entries of ``a`` (flattened) times ``scale``, each :func:`rounded`.
+
+    On plain floats (numpy scalars cost ten times more; task.json holds many).
+    """
+    arr = np.asarray(a, dtype=float).ravel()
+    return [round(v, 9) for v in (arr if scale == 1.0 else arr * scale).tolist()]
+
+
+def rounded_rows(a: npt.ArrayLike) -> list[list[float]]:
+    """Return the 3-vectors of ``a`` (reshaped to (k, 3)) as rounded lists."""
+    return [rounded_list(row) for row in np.asarray(a, dtype=float).reshape(-1, 3)]
+
+
+def pose_to_dict(X: FloatArray, scale: float = 1.0) -> dict[str, list[float]]:
+    """Return ``{"position": p * scale, "quaternion": [qw, qx, qy, qz]}`` of a 4x4 pose."""
+    p, q = position_quaternion_from_pose(X)
+    return {"position": rounded_list(p, scale), "quaternion": rounded_list(q)}
+
+
+class JsonReader:
+    """Typed accessors that raise :class:`InputFormatError` naming the source and the field.
+
+    Every accessor takes the value and ``where``, the field's path in the document
+    (``"primitives[2].stop.force"``), and returns the value converted (floats, numpy
+    arrays) or raises ``InputFormatError("<source>: <where>: <problem>")``.
+
+    Parameters
+    ----------
+    source : str
+        The document's name in messages (a file name), ``"document"`` if empty.
+    """
+
+    def __init__(self, source: str) -> None:
+        self.source = source or "document"
+
+    def fail(self, where: str, what: str) -> InputFormatError:
+        """Return (not raise) the error for field ``where``."""
+        return InputFormatError(f"{self.source}: {where}: {what}")
+
+    # ---------------------------------------------------------------- structure
+    def obj(self, d: Any, where: str) -> Mapping[str, Any]:
+        """Return ``d``, which must be a JSON object."""
+        if not isinstance(d, Mapping):
+            raise self.fail(where, f"expected an object, got {type(d).__name__}")
+        return d
+
+    def get(self, d: Mapping[str, Any], key: str, where: str) -> Any:
+        """Return the required field ``key`` of object ``d`` (``where`` names ``d``)."""
+        if key not in d:
+            raise self.fail(where, f"missing field {key!r}")
+        return d[key]
+
+    def lst(self, v: Any, where: str, n: int | None = None) -> Sequence[Any]:
+        """Return ``v``, which must be a JSON list (of exactly ``n`` entries if given)."""
+        if not isinstance(v, list | tuple):
+            raise self.fail(where, f"expected a list, got {type(v).__name__}")
+        if n is not None and len(v) != n:
+            raise self.fail(where, f"expected {n} entries, got {len(v)}")
+        return v
+
+    # ---------------------------------------------------------------- scalars
+    def string(self, v: Any, where: str, choices: Sequence[str] | None = None) -> str:
+        """Return ``v``, which must be a string (one of ``choices`` if given)."""
+        if not isinstance(v, str):
+            raise self.fail(where, f"expected a string, got {type(v).__name__}")
+        if choices is not None and v not in choices:
+            raise self.fail(where, f"expected one of {list(choices)}, got {v!r}")
+        return v
+
+    def integer(self, v: Any, where: str) -> int:
+        """Return ``v``, which must be an integer (not a boolean)."""
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(where, f"expected an integer, got {v!r}")
+        return v
+
+    def optional_int(self, v: Any, where: str) -> int | None:
+        """Return ``v``, which must be an integer or null."""
+        return None if v is None else self.integer(v, where)
+
+    def boolean(self, v: Any, where: str) -> bool:
+        """Return ``v``, which must be ``true`` or ``false``."""
+        if not isinstance(v, bool):
+            raise self.fail(where, f"expected true or false, got {v!r}")
+        return v
+
+    def number(self, v: Any, where: str) -> float:
+        """Return ``v`` as a float; it must be a finite number (not a boolean)."""
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.fail(where, f"expected a finite number, got {v!r}")
+        return float(v)
+
+    def positive(self, v: Any, where: str) -> float:
+        """Return ``v`` as a float; it must be a finite number > 0."""
+        x = self.number(v, where)
+        if x <= 0:
+            raise self.fail(where, f"expected a positive number, got {x!r}")
+        return x
+
+    def non_negative(self, v: Any, where: str) -> float:
+        """Return ``v`` as a float; it must be a finite number >= 0."""
+        x = self.number(v, where)
+        if x < 0:
+            raise self.fail(where, f"expected a non-negative number, got {x!r}")
+        return x
+
+    # ---------------------------------------------------------------- arrays
+    def vector(self, v: Any, where: str, n: int) -> FloatArray:
+        """Return a list of ``n`` finite numbers as a float array."""
+        items = self.lst(v, where, n)
+        return np.array([self.number(x, f"{where}[{i}]") for i, x in enumerate(items)])
+
+    def unit(self, v: Any, where: str, *, allow_zero: bool = False) -> FloatArray:
+        """Return a unit 3-vector (or, with ``allow_zero``, an exact zero vector)."""
+        a = self.vector(v, where, 3)
+        n = float(np.linalg.norm(a))
+        if abs(n - 1.0) > _UNIT_TOLERANCE and not (allow_zero and n < 1e-12):
+            raise self.fail(where, f"expected a unit vector, got {a.tolist()}")
+        return a
+
+    def rows(self, v: Any, where: str, *, orthonormal: bool = True) -> FloatArray:
+        """At most 3 rows of 3 numbers, shape (k, 3); orthonormal unless told otherwise."""
+        items = self.lst(v, where)
+        if len(items) > 3:
+            raise self.fail(where, f"expected at most 3 rows, got {len(items)}")
+        a = np.array(
+            [self.vector(r, f"{where}[{i}]", 3) for i, r in enumerate(items)], dtype=float
+        ).reshape(-1, 3)
+        if orthonormal and a.size and not np.allclose(a @ a.T, np.eye(len(a)), atol=1e-4):
+            raise self.fail(where, "rows must be orthonormal unit vectors")
+        return a
+
+    def pose(self, v: Any, where: str, scale: float = 1.0) -> FloatArray:
+        """``{"position", "quaternion"}`` as a 4x4 pose, the position times ``scale``."""
+        d = self.obj(v, where)
+        p = self.vector(self.get(d, "position", where), f"{where}.position", 3) * scale
+        q = self.vector(self.get(d, "quaternion", where), f"{where}.quaternion", 4)
+        if abs(float(np.linalg.norm(q)) - 1.0) > _QUATERNION_TOLERANCE:
+            raise self.fail(f"{where}.quaternion", f"not a unit quaternion: {q.tolist()}")
+        return pose_from_position_quaternion(p, q)
+
+    def feature(self, v: Any, where: str) -> tuple[str, int]:
+        """Return a model feature id ``["v" | "e" | "f", index >= 0]`` as a tuple."""
+        items = self.lst(v, where, 2)
+        kind = self.string(items[0], f"{where}[0]", ("v", "e", "f"))
+        idx = self.integer(items[1], f"{where}[1]")
+        if idx < 0:
+            raise self.fail(where, f"negative feature index {idx}")
+        return (kind, idx)
