@@ -14,15 +14,11 @@ pytest.importorskip("scipy")
 
 def _variant(name: str, seed: int):  # type: ignore[no-untyped-def]
     demo = random_variant(seed, name=name)
-    task = recognize_frames(
-        demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm"
-    ).task
+    task = recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG, units="mm").task
     return demo, task
 
 
-@pytest.mark.parametrize(
-    ("name", "seed"), [("peg_in_hole_2d", 3), ("square_peg_in_hole", 11)]
-)
+@pytest.mark.parametrize(("name", "seed"), [("peg_in_hole_2d", 3), ("square_peg_in_hole", 11)])
 def test_a_symmetric_twin_of_the_final_state_is_success(name: str, seed: int) -> None:
     demo, task = _variant(name, seed)
     G, E = demo.grasped, demo.environment

@@ -74,7 +74,8 @@ class Hand:
         self._f6 = np.zeros(6)
         self._qd = np.zeros(4)
         self._e3 = np.zeros(3)
-        self._grasped = np.zeros(scene.model.ngeom, dtype=bool)  # type: ignore[attr-defined]
+        ngeom = int(scene.model.ngeom)  # type: ignore[attr-defined]
+        self._grasped = np.zeros(ngeom, dtype=np.bool_)
         self._grasped[list(scene.grasped_geoms)] = True
 
     # ---------------------------------------------------------------- state
