@@ -38,7 +38,7 @@ def test_contact_parameters_are_the_stated_ones() -> None:
     m = scene.model
     p = ContactParameters()
     assert (p.timestep, p.solref, p.solimp, p.impratio) == (
-        0.001, (-6.0e5, -1.0e3), (0.99, 0.999, 0.0001), 10.0,
+        0.001, (0.002, 1.0), (0.99, 0.999, 0.0001), 10.0,
     )  # fmt: skip
     assert m.opt.timestep == p.timestep
     assert m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
