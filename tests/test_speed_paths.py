@@ -109,3 +109,23 @@ def test_apo_analyze_imports_no_scipy_or_plotting(tmp_path) -> None:
     # HiGHS (a small extension) is allowed: the DOF analysis may need an LP
     assert all(m.split(".")[0] == "highspy" for m in eval(loaded)), loaded
     assert (tmp_path / "out" / "report.html").exists() and (tmp_path / "out" / "task.json").exists()
+
+
+def test_repeated_poses_are_searched_once_with_the_same_states() -> None:
+    """Exact repeats reuse the state found at the first frame; the result is unchanged."""
+    from apo.recognition.contacts import distinct_poses, observed_states
+    from apo.recognition.pipeline import make_scene
+    from apo.recognition.types import SegmentationCosts
+    from apo.synthetic import add_noise, peg_in_hole_2d
+
+    demo = add_noise(peg_in_hole_2d(), sigma_mm=0.5, sigma_deg=0.5, seed=2)
+    X = np.concatenate([demo.X_EG, demo.X_EG[::3], demo.X_EG])
+    X[-1, 0, 3] += 1e-12  # one near-repeat: searched again
+    first, inverse = distinct_poses(X)
+    n = len(demo.X_EG)
+    assert len(first) == n + 1 and np.array_equal(X[first[inverse]], X)
+    scene = make_scene(demo.grasped, demo.environment, X, 0.004, SegmentationCosts())
+    states = observed_states(scene)
+    every = scene.finder.find_batch(X)
+    assert [s.key for s in states] == [s.key for s in every]
+    assert states[n] is states[0] and states[-1] is not states[n - 1]

@@ -64,7 +64,8 @@ def rounded_list(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
 
 def rounded_rows(a: npt.ArrayLike) -> list[list[float]]:
     """Return the 3-vectors of ``a`` (reshaped to (k, 3)) as rounded lists."""
-    return [rounded_list(row) for row in np.asarray(a, dtype=float).reshape(-1, 3)]
+    rows = np.asarray(a, dtype=float).reshape(-1, 3).tolist()  # one conversion: plain floats
+    return [[round(v, 9) for v in row] for row in rows]
 
 
 def pose_to_dict(X: FloatArray, scale: float = 1.0) -> dict[str, list[float]]:

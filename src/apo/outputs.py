@@ -40,7 +40,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 from types import TracebackType
@@ -529,7 +529,7 @@ def json_text(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> str:
       }
     }
     """
-    flat = json.JSONEncoder(separators=(", ", ": ")).encode
+    flat = _one_line_encoder()
     out: list[str] = []
     nested = (dict, list, tuple)
 
@@ -557,3 +557,32 @@ def json_text(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> str:
     put(data, 0)
     out.append("\n")
     return "".join(out)
+
+
+def _one_line_encoder() -> Callable[[Any], str]:
+    """Return ``json.dumps(v, separators=(", ", ": "))`` as a function, made once.
+
+    ``JSONEncoder.encode`` builds a new C encoder at every call (a few microseconds: most
+    of the cost of a short list); this builds it once (``json.encoder.c_make_encoder``, with
+    the arguments ``JSONEncoder.iterencode`` gives it), or falls back to ``encode``.
+    """
+    from json import encoder as std
+
+    enc = json.JSONEncoder(separators=(", ", ": "))
+    make = getattr(std, "c_make_encoder", None)
+    if make is None:
+        return enc.encode
+    try:
+        c = make(
+            None, enc.default, std.encode_basestring_ascii, None, ": ", ", ", False, False, True
+        )
+        if "".join(c([1.5, {"a": None}], 0)) != '[1.5, {"a": null}]':
+            return enc.encode
+    except Exception:  # another Python's private signature
+        return enc.encode
+    esc = std.encode_basestring_ascii
+
+    def one_line(v: Any) -> str:
+        return esc(v) if isinstance(v, str) else "".join(c(v, 0))
+
+    return one_line

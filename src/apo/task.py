@@ -21,7 +21,7 @@ import numpy as np
 from apo.constants import UNITS
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.jsonform import JsonReader, rounded, rounded_list
+from apo.jsonform import JsonReader, rounded, rounded_list, rounded_rows
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -351,7 +351,7 @@ def element_to_dict(e: Element, k: float) -> dict[str, Any]:
         "grasped": [e.grasped[0], int(e.grasped[1])],
         "environment": [e.environment[0], int(e.environment[1])],
         "point": rounded_list(e.point, k),
-        "normals": [rounded_list(n) for n in np.asarray(e.normals).reshape(-1, 3)],
+        "normals": rounded_rows(e.normals),
     }
 
 
@@ -372,7 +372,7 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
                 "direction": rounded_list(np.zeros(3) if u.direction is None else u.direction),
                 "point": None if u.point is None else rounded_list(u.point, k),
                 "source": u.source,
-                "subspace": [rounded_list(row) for row in np.asarray(u.subspace).reshape(-1, 3)],
+                "subspace": rounded_rows(u.subspace),
             }
             for u in t.subskills
         ],

@@ -125,18 +125,37 @@ def parse_noise(text: str | None, unit: float) -> tuple[float, float] | None:
     return pos * unit, math.radians(deg)
 
 
+#: The progress bar appears once the work has taken this long (s): a fast run shows none
+#: and does not import tqdm.
+PROGRESS_DELAY = 0.5
+
+
 def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
-    """Return ``(progress, close)`` for a tqdm bar on stderr, or ``(None, noop)`` if short."""
+    """Return ``(progress, close)`` for a tqdm bar on stderr, or ``(None, noop)`` if short.
+
+    The bar is made (and tqdm imported) at the first update after ``PROGRESS_DELAY``
+    seconds, so a run that is over sooner prints nothing.
+    """
     if n < PROGRESS_MIN_FRAMES:
         return None, lambda: None
-    from tqdm import tqdm
+    import time
 
-    bar = tqdm(total=n, desc=desc, unit="frame", file=sys.stderr, leave=False)
+    start = time.monotonic()
+    bars: list[Any] = []
 
     def update(done: int, total: int) -> None:
-        bar.update(done - bar.n)
+        if not bars and time.monotonic() - start >= PROGRESS_DELAY:
+            from tqdm import tqdm
 
-    return update, bar.close
+            bars.append(tqdm(total=n, desc=desc, unit="frame", file=sys.stderr, leave=False))
+        if bars:
+            bars[0].update(done - bars[0].n)
+
+    def close() -> None:
+        if bars:
+            bars[0].close()
+
+    return update, close
 
 
 def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None:

@@ -210,23 +210,36 @@ def _cache_file(path: Path, fmt: str, scale: float) -> Path | None:
 
     Reading a STEP file means importing trimesh and OpenCASCADE and tessellating, about a
     quarter of a second before any analysis; the triangles of a file already read are
-    taken from here instead. A changed file, scale, trimesh or cascadio gives a new key.
+    taken from here instead. A changed file, scale, trimesh or cascadio (installed anew:
+    :func:`_installed`) gives a new key.
     """
     root = cache_dir()
     if root is None:
         return None
-    from importlib import metadata
-
     h = hashlib.sha256()
     h.update(path.read_bytes())
-    versions = []
-    for dist in ("trimesh", "cascadio"):
-        try:
-            versions.append(metadata.version(dist))
-        except metadata.PackageNotFoundError:
-            versions.append("-")
+    versions = [_installed(dist) for dist in ("trimesh", "cascadio")]
     h.update(f"|{fmt}|{scale!r}|{_CACHE_FORMAT}|{'|'.join(versions)}".encode())
     return root / "meshes" / f"{h.hexdigest()}.npz"
+
+
+def _installed(package: str) -> str:
+    """Stamp of an installed reader package: its ``__init__.py`` path, size and mtime.
+
+    Any re-installation rewrites the file, so a new trimesh or cascadio gives a new cache
+    key; found without importing the package or ``importlib.metadata`` (which alone costs
+    more than reading both cached models).
+    """
+    import importlib.util
+
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.origin:
+        return "-"
+    try:
+        st = os.stat(spec.origin)
+    except OSError:
+        return "-"
+    return f"{spec.origin}:{st.st_size}:{st.st_mtime_ns}"
 
 
 def _cache_read(cache: Path) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]] | None:

@@ -17,7 +17,14 @@ from apo.contact import ContactState
 from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
 from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
 
-__all__ = ["Observations", "group_states", "near_signatures", "observe", "observed_states"]
+__all__ = [
+    "Observations",
+    "distinct_poses",
+    "group_states",
+    "near_signatures",
+    "observe",
+    "observed_states",
+]
 
 #: Frames per batch handed to the contact finder (and per progress update).
 CHUNK = 512
@@ -54,23 +61,53 @@ def observed_states(
 ) -> list[ContactState]:
     """Contact state at every frame of ``scene.X`` (threshold ``scene.theta``).
 
+    A frame whose pose repeats an earlier frame's exactly (the same 16 numbers, bit for bit)
+    is not searched again: the contact finder is a function of the pose (the models, the
+    threshold and the tolerances being fixed), so it would find the same state; the frame
+    gets that state (the same object). A tracker that holds its last pose, or a
+    demonstration file repeated, costs one search per distinct pose.
     With ``memoize``, frames are labelled by their near feature pairs (vectorised) and the
     contact finder runs once per label, at the label's first frame.
     """
     X, n = scene.X, scene.n
+    first, inverse = distinct_poses(X)
+    Xu, m = X[first], len(first)
     if memoize:
         labels = near_signatures(
-            scene.grasped, scene.environment, X, scene.theta, progress=progress
+            scene.grasped, scene.environment, Xu, scene.theta, progress=progress
         )
-        _uniq, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
-        found = scene.finder.find_batch(X[first])  # one batched search over the labels
-        return [found[int(j)] for j in inverse.ravel()]
-    states: list[ContactState] = []
-    for a in range(0, n, CHUNK):
-        states.extend(scene.finder.find_batch(X[a : a + CHUNK]))
-        if progress is not None:
-            progress(min(a + CHUNK, n), n)
-    return states
+        _uniq, once, again = np.unique(labels, return_index=True, return_inverse=True)
+        found = scene.finder.find_batch(Xu[once])  # one batched search over the labels
+        states = [found[int(j)] for j in again.ravel()]
+    else:
+        states = []
+        for a in range(0, m, CHUNK):
+            states.extend(scene.finder.find_batch(Xu[a : a + CHUNK]))
+            if progress is not None:
+                progress(n if a + CHUNK >= m else (a + CHUNK) * n // m, n)
+    return states if m == n else [states[j] for j in inverse.tolist()]
+
+
+def distinct_poses(X: FloatArray) -> tuple[IntArray, IntArray]:
+    """Return the first frame of each distinct pose (bit for bit) and each frame's pose.
+
+    Returns ``first`` (indices into ``X``, in order of first appearance) and ``inverse``
+    (``X[first[inverse[i]]]`` is ``X[i]`` exactly).
+
+    Examples
+    --------
+    >>> X = np.stack([np.eye(4), 2 * np.eye(4), np.eye(4)])
+    >>> [v.tolist() for v in distinct_poses(X)]
+    [[0, 1], [0, 1, 0]]
+    """
+    rows = np.ascontiguousarray(X, dtype=np.float64).reshape(len(X), -1)
+    index: dict[bytes, int] = {}
+    inverse = np.fromiter(
+        (index.setdefault(r, len(index)) for r in map(bytes, rows)), np.int64, len(rows)
+    )
+    first = np.full(len(index), len(rows), dtype=np.int64)
+    np.minimum.at(first, inverse, np.arange(len(rows), dtype=np.int64))
+    return first, inverse
 
 
 def group_states(states: Sequence[ContactState]) -> Observations:
@@ -78,10 +115,13 @@ def group_states(states: Sequence[ContactState]) -> Observations:
     index: dict[StateKey, int] = {}
     labels = np.empty(len(states), dtype=np.int64)
     first: list[ContactState] = []
+    known: dict[int, int] = {}  # id(state) -> label: a state repeated is keyed once
     for i, s in enumerate(states):
-        k = index.setdefault(s.key, len(index))
-        if k == len(first):
-            first.append(s)
+        k = known.get(id(s))
+        if k is None:
+            k = known[id(s)] = index.setdefault(s.key, len(index))
+            if k == len(first):
+                first.append(s)
         labels[i] = k
     return Observations(labels, list(index), first)
 

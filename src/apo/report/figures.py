@@ -220,95 +220,21 @@ def _graph_layout(n: int, cols: int) -> list[tuple[float, float]]:
 
 def state_graph_figure(task: Mapping[str, Any], *, max_rejected: int = 12) -> Figure:
     """Draw the state graph of the paper's Fig. 24/25 (boxes, labelled arrows, rejected runs)."""
-    from matplotlib.patches import FancyArrowPatch, Rectangle
-
     states = task["states"]
     n = len(states)
     cols = max(1, min(n, 5))
     rows = (n + cols - 1) // cols
     pos = _graph_layout(n, cols)
-    colors = state_colors(states)
-    W, H = 2.3, 1.1
     fig = _new_figure(2.6 * cols + 0.6, 2.1 * rows + 0.8)
     ax = fig.add_axes((0.01, 0.01, 0.98, 0.9))
     index = {s["id"]: i for i, s in enumerate(states)}
-    for s, (x, y), c in zip(states, pos, colors, strict=True):
-        ax.add_patch(
-            Rectangle(
-                (x - W / 2, y - H / 2),
-                W,
-                H,
-                facecolor=c,
-                edgecolor="black",
-                linestyle=":" if s["singular"] else "-",
-                lw=1.2,
-            )
-        )
-        head = (
-            s["id"]
-            + (" (singular)" if s["singular"] else "")
-            + (f" = {s['same_as']}" if s.get("same_as") else "")
-        )
-        ax.text(
-            x,
-            y + 0.2,
-            head,
-            ha="center",
-            va="center",
-            fontsize=10,
-            color="white",
-            fontweight="bold",
-        )
-        f, S = s["fig25"], "S " if s["singular"] else ""
-        numbers = f"T {S}{f[0]} {f[1]} {f[2]}  R {S}{f[3]} {f[4]} {f[5]}\nr {f[6]} {f[7]}"
-        ax.text(
-            x,
-            y - 0.2,
-            numbers,
-            ha="center",
-            va="center",
-            fontsize=7,
-            color="white",
-            family="monospace",
-            linespacing=1.1,
-        )
+    for s, xy, c in zip(states, pos, state_colors(states), strict=True):
+        _draw_state_box(ax, s, xy, c)
     for k, t in enumerate(task["transitions"]):
-        (ax0, ay0), (bx, by) = pos[index[t["from"]]], pos[index[t["to"]]]
-        horiz = abs(ay0 - by) < 1e-9
-        sgn = np.sign(bx - ax0) if horiz else 0.0
-        start = (ax0 + sgn * W / 2, ay0) if horiz else (ax0, ay0 - H / 2)
-        end = (bx - sgn * W / 2, by) if horiz else (bx, by + H / 2)
-        col = CRITICAL if t["critical"] else ("#333333" if t["direct"] else "#ef6c00")
-        ax.add_patch(
-            FancyArrowPatch(
-                start,
-                end,
-                arrowstyle="-|>",
-                mutation_scale=14,
-                color=col,
-                lw=2.6 if t["critical"] else 1.3,
-            )
-        )
-        lines = [subskill_text(u).replace(" (", "\n(") for u in t["subskills"]]
-        lines = lines or ["(no sub-skill)"]
-        if t["critical"]:
-            lines.insert(0, "CRITICAL")
-        if not t["direct"]:
-            lines.insert(0, "not direct")
-        mx, my = 0.5 * (start[0] + end[0]), 0.5 * (start[1] + end[1])
-        ax.text(
-            mx if horiz else mx + 0.12,
-            my + 0.1 if horiz else my,
-            f"({k + 1}) " + "\n".join(lines),
-            ha="center" if horiz else "left",
-            va="bottom" if horiz else "center",
-            fontsize=6.5,
-            color=col,
-            linespacing=1.15,
-        )
+        _draw_transition(ax, k, t, pos[index[t["from"]]], pos[index[t["to"]]])
     _draw_rejected(ax, task, pos, max_rejected)
-    ax.set_xlim(-W, (cols - 1) * _DX + W)
-    ax.set_ylim(-(rows - 1) * 3.0 - 2.0, H)
+    ax.set_xlim(-_BOX_W, (cols - 1) * _DX + _BOX_W)
+    ax.set_ylim(-(rows - 1) * 3.0 - 2.0, _BOX_H)
     ax.set_aspect("equal")
     ax.axis("off")
     fig.suptitle(
@@ -317,6 +243,69 @@ def state_graph_figure(task: Mapping[str, Any], *, max_rejected: int = 12) -> Fi
         fontsize=9,
     )
     return fig
+
+
+#: Width and height of a state's box in the state graph (data units).
+_BOX_W, _BOX_H = 2.3, 1.1
+
+
+def _draw_state_box(ax: Any, s: Mapping[str, Any], xy: tuple[float, float], color: str) -> None:
+    """Draw a state's box: its id (singular: dotted; ``= X`` if the same as X), Fig. 25 numbers."""
+    from matplotlib.patches import Rectangle
+
+    x, y = xy
+    W, H = _BOX_W, _BOX_H
+    ax.add_patch(
+        Rectangle((x - W / 2, y - H / 2), W, H, facecolor=color, edgecolor="black",
+                  linestyle=":" if s["singular"] else "-", lw=1.2)
+    )  # fmt: skip
+    head = (
+        s["id"]
+        + (" (singular)" if s["singular"] else "")
+        + (f" = {s['same_as']}" if s.get("same_as") else "")
+    )
+    ax.text(x, y + 0.2, head, ha="center", va="center", fontsize=10, color="white",
+            fontweight="bold")  # fmt: skip
+    f, S = s["fig25"], "S " if s["singular"] else ""
+    numbers = f"T {S}{f[0]} {f[1]} {f[2]}  R {S}{f[3]} {f[4]} {f[5]}\nr {f[6]} {f[7]}"
+    ax.text(x, y - 0.2, numbers, ha="center", va="center", fontsize=7, color="white",
+            family="monospace", linespacing=1.1)  # fmt: skip
+
+
+def _draw_transition(
+    ax: Any, k: int, t: Mapping[str, Any], a: tuple[float, float], b: tuple[float, float]
+) -> None:
+    """Transition ``k`` from the box at ``a`` to the box at ``b``: arrow and sub-skill label."""
+    from matplotlib.patches import FancyArrowPatch
+
+    W, H = _BOX_W, _BOX_H
+    (ax0, ay0), (bx, by) = a, b
+    horiz = abs(ay0 - by) < 1e-9
+    sgn = np.sign(bx - ax0) if horiz else 0.0
+    start = (ax0 + sgn * W / 2, ay0) if horiz else (ax0, ay0 - H / 2)
+    end = (bx - sgn * W / 2, by) if horiz else (bx, by + H / 2)
+    col = CRITICAL if t["critical"] else ("#333333" if t["direct"] else "#ef6c00")
+    ax.add_patch(
+        FancyArrowPatch(start, end, arrowstyle="-|>", mutation_scale=14, color=col,
+                        lw=2.6 if t["critical"] else 1.3)
+    )  # fmt: skip
+    lines = [subskill_text(u).replace(" (", "\n(") for u in t["subskills"]]
+    lines = lines or ["(no sub-skill)"]
+    if t["critical"]:
+        lines.insert(0, "CRITICAL")
+    if not t["direct"]:
+        lines.insert(0, "not direct")
+    mx, my = 0.5 * (start[0] + end[0]), 0.5 * (start[1] + end[1])
+    ax.text(
+        mx if horiz else mx + 0.12,
+        my + 0.1 if horiz else my,
+        f"({k + 1}) " + "\n".join(lines),
+        ha="center" if horiz else "left",
+        va="bottom" if horiz else "center",
+        fontsize=6.5,
+        color=col,
+        linespacing=1.15,
+    )
 
 
 def _draw_rejected(
