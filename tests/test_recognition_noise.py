@@ -163,3 +163,14 @@ def test_contact_noise_of_exact_contacts_is_zero_and_needs_residuals():
     els = [tuple(c.state.elements) if c else () for c in (rec.candidates[k] for k in rec.assigned)]
     assert contact_noise(demo.grasped, demo.environment, demo.X_EG, els) < 1e-9
     assert contact_noise(demo.grasped, demo.environment, demo.X_EG, [()] * len(demo)) == 0.0
+
+
+def test_a_support_lp_the_fast_solver_settings_stall_on_is_solved():
+    # drift 1 mm / 1 deg, seed 39: a state's maximal-support LP (apo.dof) was not solved
+    # by the reused primal-simplex HiGHS instance ("maximal-support LP failed")
+    demo = synthetic.square_peg_in_hole()
+    noisy = synthetic.add_noise(
+        demo, sigma_mm=0.5, sigma_deg=0.5, drift_mm=1.0, drift_deg=1.0, seed=39
+    )
+    rec = recognize_frames(demo.grasped, demo.environment, noisy.times, noisy.X_EG)
+    assert rec.task.states[0].fig25 == (3, 0, 0, 3, 0, 0, 0, 0)
