@@ -66,7 +66,11 @@ def test_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        ('{"contacts": [\n  {"point": [0, 0, 0],, }]}', "invalid JSON at line 2, column"),
+        (
+            '{"contacts": [\n  {"point": [0, 0, 0],, }]}',
+            "not valid JSON: Expecting property name enclosed in double quotes"
+            " at line 2, column 23",
+        ),
         (
             {"contacts": [{"point": [0, 0, 0], "normals": [[0, 0, 0]]}]},
             "contact 0: normal 0 is zero",
@@ -104,7 +108,7 @@ def test_nan_normal(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
 def test_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = str(tmp_path / "nope.json")
     assert main(["dof", missing]) == 2
-    assert f"apo dof: error: {missing}: no such file" in capsys.readouterr().err
+    assert f"apo dof: error: {missing}: file not found" in capsys.readouterr().err
 
 
 # ---- added by the audit of issue 2 --------------------------------------------------------
@@ -195,7 +199,7 @@ def test_table_marks_singular_rows(tmp_path: Path, capsys: pytest.CaptureFixture
             {"contacts": [{"point": [0, 0, 0], "normals": [[0, -Infinity, 1]]}]},
             "contact 0: normals are not finite",
         ),
-        ("", "invalid JSON at line 1, column 1"),
+        ("", "not valid JSON: Expecting value at line 1, column 1"),
         ("[]", 'expected an object with a "contacts" list'),
     ],
 )

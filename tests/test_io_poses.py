@@ -246,6 +246,7 @@ def test_csv_errors_name_file_and_line(tmp_path, text, match):
         ([0.0, 1.0], np.stack([np.eye(4)] * 3), None, r"shape \(2, 4, 4\)"),
         ([1.0, 1.0], np.stack([np.eye(4)] * 2), None, r"frame 1 has t = 1.0 after 1.0"),
         ([0.0], np.eye(4)[None] * 2, None, r"X_EG\[0\] has no rotation"),
+        ([0.0], np.diag([1.0, 1.0, 1.0, 2.0])[None], None, r"X_EG\[0\] last row is not 0 0 0 1"),
         ([0.0], np.full((1, 4, 4), np.nan), None, r"finite"),
         ([0.0], np.eye(4)[None], {"qw": [1.0]}, r"bad extra column name 'qw'"),
         ([0.0], np.eye(4)[None], {"a,b": [1.0]}, r"bad extra column name"),

@@ -141,7 +141,7 @@ def test_report_rejects_bad_inputs(demo_dir: Path, tmp_path: Path, capsys) -> No
     bad = tmp_path / "task.json"
     bad.write_text("{not json")
     assert main(["report", str(bad)]) == 2
-    assert "not JSON" in capsys.readouterr().err
+    assert "task.json: not valid JSON" in capsys.readouterr().err
     doc = json.loads((demo_dir / "task.json").read_text())
     del doc["states"][0]["fig25"]
     bad.write_text(json.dumps(doc))

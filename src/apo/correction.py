@@ -28,7 +28,7 @@ import numpy.typing as npt
 from apo.constants import tol
 from apo.contact import ContactElement, ContactKind
 from apo.geometry import Polyhedron
-from apo.spatial import check_poses
+from apo.spatial import check_poses, perpendicular_basis
 from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
@@ -69,7 +69,7 @@ the initial residual is flagged (turning G back by a small angle moves its far v
 times more than the contact points)."""
 
 _MAX_HALVINGS = 8
-_STALL = 0.999  # a step that does not lower the cost below this fraction counts as a stall
+_STALL = tol.correction_stall
 
 
 # --------------------------------------------------------------------------------------------
@@ -185,22 +185,11 @@ def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
-def _perp_basis(u: FloatArray) -> FloatArray:
-    """Orthonormal basis (2, 3) perpendicular to unit ``u``; the one ``apo.contact`` uses.
-
-    ``t1 = u x (1, 0, 0)`` (or ``u x (0, 1, 0)`` when ``u`` is close to x), ``t2 = u x t1``.
-    """
-    x, y, z = float(u[0]), float(u[1]), float(u[2])
-    t1 = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])
-    t1 /= math.sqrt(float(t1 @ t1))
-    return np.stack([t1, np.cross(u, t1)])
-
-
 def _poses_from_twists(xi: FloatArray) -> FloatArray:
     """Batched ``apo.spatial.pose_from_twist``: twists (n, 6) ``[omega; v]`` -> poses (n, 4, 4)."""
     w, v = xi[:, :3], xi[:, 3:]
     th = np.sqrt(np.einsum("ni,ni->n", w, w))
-    small = th < 1e-8
+    small = th < tol.twist_series_angle
     ths = np.where(small, 1.0, th)
     A = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
     B = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
@@ -318,7 +307,7 @@ def _add_point_rows(rows: _Rows, G: Polyhedron, E: Polyhedron, el: ContactElemen
     elif el.kind is ContactKind.VE:
         e = _feature(E, el.environment, "e", i)
         b0 = E.vertices[E.edges[e, 0]]
-        dirs = list(_perp_basis(E.edge_directions[e]))
+        dirs = list(perpendicular_basis(E.edge_directions[e]))
         offsets = [float(kj @ b0) for kj in dirs]
     else:  # VV
         q = E.vertices[_feature(E, el.environment, "v", i)]
@@ -341,7 +330,7 @@ def _add_direction_rows(
     else:  # EV
         e = _feature(G, el.grasped, "e", i)
         a0 = G.vertices[G.edges[e, 0]]
-        dirs = list(_perp_basis(G.edge_directions[e]))
+        dirs = list(perpendicular_basis(G.edge_directions[e]))
         offsets = [float(kj @ a0) for kj in dirs]
     q = E.vertices[_feature(E, el.environment, "v", i)]
     for u, c in zip(dirs, offsets, strict=True):
@@ -502,7 +491,7 @@ class ContactConstraints:
             e = np.broadcast_to(self._ee[None], u.shape)
             cr = _cross(u, e)
             nc = np.sqrt(np.einsum("nki,nki->nk", cr, cr))
-            nc = np.maximum(nc, 1e-12)
+            nc = np.maximum(nc, tol.zero_norm)
             m = cr / nc[..., None]
             sign = np.where(np.einsum("nki,ki->nk", m, self._eref) < 0.0, -1.0, 1.0)
             m = m * sign[..., None]

@@ -269,14 +269,14 @@ def _directions(normals: FloatArray) -> tuple[FloatArray, BoolArray]:
     ``2**-e`` that brings its largest absolute component into [0.5, 1), which is exact, so
     no finite length overflows (components up to 1e308) and the directions are those of
     ``normals / |normals|`` bit for bit wherever that does not overflow. A row is zero when
-    its length is at most 1e-12 (its direction is then not meaningful).
+    its length is at most ``tol.zero_norm`` (1e-12; its direction is then not meaningful).
     """
     _, e = np.frexp(np.abs(normals).max(axis=1))  # e = 0 for a zero row
     scaled = np.ldexp(normals, -e[:, None])
     length = np.sqrt(np.einsum("ij,ij->i", scaled, scaled))  # in [0.5, sqrt(3)), or 0
     # The true length is length * 2**e; where e > 0 it is at least 1, so only e <= 0 needs
     # the (exact, never overflowing) rescaling for the comparison.
-    nonzero = np.ldexp(length, np.minimum(e, 0)) > 1e-12
+    nonzero = np.ldexp(length, np.minimum(e, 0)) > tol.zero_norm
     unit = scaled / np.where(nonzero, length, 1.0)[:, None]
     return unit, nonzero
 
@@ -603,42 +603,50 @@ def _normalised_columns(
     return f, w
 
 
-def _analyze_regular(
-    points: FloatArray,
-    normals: FloatArray,
-    centre: FloatArray,
-    length: float,
-    exponent: int,
-    tolerances: Tolerances,
-) -> _Regular:
-    """Analysis of a non-singular state (one unit normal per point); paper section 2.2.1.
+@dataclass(frozen=True)
+class _TranslationPart:
+    """Translation DOF of a regular state (eq. 3) and the subspaces that come with it."""
 
-    ``points``, ``centre`` and ``length`` are in units of ``2**exponent`` metres.
-    """
-    f, w = _normalised_columns(points, normals, centre, length)
-    eye3 = np.eye(3)
+    dof: SpaceDof
+    support: BoolArray  # S_t: contacts that must stay closed under every translation
+    maintaining: FloatArray  # canonical rows
+    constraining: FloatArray
+    detaching: FloatArray
+    direction: FloatArray
+    null_support: FloatArray  # lambda on S_t with F_S lambda = 0
 
-    # --- translation (eq. 3) ----------------------------------------------------------------
+
+def _translation_part(f: FloatArray, tolerances: Tolerances) -> _TranslationPart:
+    """Return the translation part (eq. 3) from the unit normals ``f`` (3, N)."""
     uf, sf, vft = np.linalg.svd(f, full_matrices=True)
     rank_f = _rank_from_sv(sf, tolerances)
     m_t = 3 - rank_f
     s_t = _support(f, vft[rank_f:].T, tolerances)
-    t_maint = _canonical_rows(uf[:, rank_f:].T)
     f_s = f[:, s_t]
     if f_s.shape[1]:
         ufs, sfs, vfst = np.linalg.svd(f_s, full_matrices=True)
         c_t = _rank_from_sv(sfs, tolerances)
         t_constr = ufs[:, :c_t].T
-        null_fs = vfst[c_t:].T  # lambda on S_t with F_S lambda = 0
+        null_fs = vfst[c_t:].T
     else:
         c_t = 0
         t_constr = np.zeros((0, 3))
         null_fs = np.zeros((0, 0))
     d_t = 3 - m_t - c_t
     t_det = _orth_complement(uf[:, :rank_f].T, t_constr, d_t)
-    direction = _detaching_direction(f, s_t, t_det, tolerances)
+    return _TranslationPart(
+        dof=SpaceDof(m_t, d_t, c_t),
+        support=s_t,
+        maintaining=_canonical_rows(uf[:, rank_f:].T),
+        constraining=t_constr,
+        detaching=t_det,
+        direction=_detaching_direction(f, s_t, t_det, tolerances),
+        null_support=null_fs,
+    )
 
-    # --- all (eq. 4) ------------------------------------------------------------------------
+
+def _all_part(w: FloatArray, tolerances: Tolerances) -> tuple[SpaceDof, FloatArray, FloatArray]:
+    """Whole-motion DOF (eq. 4): the indices, ``null(W^T)`` (6, m_a) and ``span(V_a)``."""
     uw, sw, vwt = np.linalg.svd(w, full_matrices=True)
     rank_w = _rank_from_sv(sw, tolerances)
     m_a = 6 - rank_w
@@ -651,59 +659,78 @@ def _analyze_regular(
     else:
         c_a = 0
         span_va = np.eye(6)
-    d_a = 6 - m_a - c_a
+    return SpaceDof(m_a, 6 - m_a - c_a, c_a), uw[:, rank_w:], span_va
 
-    # --- rotation (propositions 1-6) --------------------------------------------------------
-    m_r = m_a - m_t  # proposition 3
+
+def _rotation_dual_lineality(
+    w: FloatArray, trans: _TranslationPart, tolerances: Tolerances
+) -> tuple[int, FloatArray]:
+    """Return the rank of ``span(V_r*)`` and the rows of its orthogonal complement.
+
+    ``V_r* = {sum lambda_i Mo_i : lambda >= 0, sum lambda_i F_i = 0}`` (proposition 5).
+    """
+    null_fs = trans.null_support
+    if not null_fs.size:
+        return 0, np.eye(3)
+    # moments with the same column scale as the unit normals f (W was rescaled per column)
+    ws = w[:, trans.support]
+    mo_s = ws[:3] / np.linalg.norm(ws[3:], axis=0)
+    ug, sg, _ = np.linalg.svd(mo_s @ null_fs, full_matrices=True)
+    rank_g = _rank_from_sv(sg, tolerances)
+    return rank_g, ug[:, rank_g:].T
+
+
+def _analyze_regular(
+    points: FloatArray,
+    normals: FloatArray,
+    centre: FloatArray,
+    length: float,
+    exponent: int,
+    tolerances: Tolerances,
+) -> _Regular:
+    """Analysis of a non-singular state (one unit normal per point); paper section 2.2.1.
+
+    ``points``, ``centre`` and ``length`` are in units of ``2**exponent`` metres.
+    Translation (eq. 3), all motions (eq. 4), then rotation (propositions 1-6).
+    """
+    f, w = _normalised_columns(points, normals, centre, length)
+    trans = _translation_part(f, tolerances)
+    all_dof, null_wt, span_va = _all_part(w, tolerances)
+
+    m_r = all_dof.maintaining - trans.dof.maintaining  # proposition 3
     ur, sr, _ = np.linalg.svd(span_va[:3], full_matrices=True)
     dim_vr = _rank_from_sv(sr, tolerances)
     c_r = 3 - dim_vr  # proposition 1
-    r_constr = ur[:, dim_vr:].T
     span_vr = ur[:, :dim_vr].T
     d_r = 3 - m_r - c_r  # proposition 2
-    # span of the dual V_r* = {sum lambda_i Mo_i : lambda >= 0, sum lambda_i F_i = 0}
-    if null_fs.size:
-        # moments with the same column scale as the unit normals f (W was rescaled per column)
-        ws = w[:, s_t]
-        mo_s = ws[:3] / np.linalg.norm(ws[3:], axis=0)
-        gen = mo_s @ null_fs
-        ug, sg, _ = np.linalg.svd(gen, full_matrices=True)
-        rank_g = _rank_from_sv(sg, tolerances)
-        lin_vr = ug[:, rank_g:].T
-    else:
-        rank_g = 0
-        lin_vr = eye3
+    rank_g, lin_vr = _rotation_dual_lineality(w, trans, tolerances)
     d_r1 = min(max(3 - rank_g - m_r, 0), max(d_r, 0))  # proposition 5
     d_r2 = d_r - d_r1  # proposition 6
 
     # maintaining twists (normalised frame), their axes, canonical form in the input frame
-    null_wt = uw[:, rank_w:]  # (6, m_a)
     if m_r > 0:
         ua, _, _ = np.linalg.svd(null_wt[:3], full_matrices=True)
         r_maint = _canonical_rows(ua[:, :m_r].T)
     else:
         r_maint = np.zeros((0, 3))
-    r_det = _orth_complement(span_vr, r_maint, d_r)
-    r_det1 = _orth_complement(lin_vr, r_maint, d_r1)
-    r_det2 = _orth_complement(span_vr, lin_vr, d_r2)
-    twists = _maintaining_twists(null_wt, t_maint, r_maint, centre, length, exponent)
-
     geometry = DofGeometry(
-        translation_maintaining=t_maint,
-        translation_detaching=_canonical_rows(t_det),
-        translation_constraining=_canonical_rows(t_constr),
+        translation_maintaining=trans.maintaining,
+        translation_detaching=_canonical_rows(trans.detaching),
+        translation_constraining=_canonical_rows(trans.constraining),
         rotation_maintaining=r_maint,
-        rotation_detaching=_canonical_rows(r_det),
-        rotation_detaching_type1=_canonical_rows(r_det1),
-        rotation_constraining=_canonical_rows(r_constr),
-        maintaining_twists=twists,
-        rotation_detaching_type2=_canonical_rows(r_det2),
-        translation_detaching_direction=direction,
+        rotation_detaching=_canonical_rows(_orth_complement(span_vr, r_maint, d_r)),
+        rotation_detaching_type1=_canonical_rows(_orth_complement(lin_vr, r_maint, d_r1)),
+        rotation_constraining=_canonical_rows(ur[:, dim_vr:].T),
+        maintaining_twists=_maintaining_twists(
+            null_wt, trans.maintaining, r_maint, centre, length, exponent
+        ),
+        rotation_detaching_type2=_canonical_rows(_orth_complement(span_vr, lin_vr, d_r2)),
+        translation_detaching_direction=trans.direction,
     )
     return _Regular(
-        translation=SpaceDof(m_t, d_t, c_t),
+        translation=trans.dof,
         rotation=RotationDof(m_r, d_r, c_r, d_r1, d_r2),
-        all=SpaceDof(m_a, d_a, c_a),
+        all=all_dof,
         geometry=geometry,
     )
 

@@ -867,7 +867,7 @@ def transformed(poly: Polyhedron, X_NM: npt.ArrayLike) -> Polyhedron:
     R, p = X[:3, :3], X[:3, 3]
     if (
         not np.all(np.isfinite(X))
-        or not np.allclose(R.T @ R, np.eye(3), atol=1e-9)
+        or not np.allclose(R.T @ R, np.eye(3), atol=tol.rigid_transform)
         or np.linalg.det(R) <= 0
         or not np.allclose(X[3], [0.0, 0.0, 0.0, 1.0])
     ):
@@ -1011,7 +1011,7 @@ def _ear_clip(pts: FloatArray, ring: list[int]) -> IntArray:
             area = _cross2(a, b, c)
             if area > best_area:
                 best_k, best_area = k, area
-            if area <= 1e-12 * float(np.linalg.norm(b - a) * np.linalg.norm(c - b)):
+            if area <= tol.zero_norm * float(np.linalg.norm(b - a) * np.linalg.norm(c - b)):
                 continue
             ear = True
             for j in idx:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import tol
 from apo.errors import InputFormatError
 from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
 from apo.typing import FloatArray
@@ -41,11 +42,8 @@ __all__ = [
     "rounded_rows",
 ]
 
-_UNIT_TOLERANCE = 1e-4
-"""Largest deviation of a written unit vector's norm (or rows' Gram matrix) from 1 (and the
-identity): files round to 9 decimals, hand-edited files to a few more than 4."""
-_QUATERNION_TOLERANCE = 1e-6
-"""Largest deviation of a written pose quaternion's norm from 1."""
+_UNIT_TOLERANCE = tol.json_unit_norm  # why these two differ: apo.constants
+_QUATERNION_TOLERANCE = tol.json_quaternion_norm
 
 
 def rounded(x: float, nd: int = 9) -> float:
@@ -170,7 +168,7 @@ class JsonReader:
         """Return a unit 3-vector (or, with ``allow_zero``, an exact zero vector)."""
         a = self.vector(v, where, 3)
         n = float(np.linalg.norm(a))
-        if abs(n - 1.0) > _UNIT_TOLERANCE and not (allow_zero and n < 1e-12):
+        if abs(n - 1.0) > _UNIT_TOLERANCE and not (allow_zero and n < tol.zero_norm):
             raise self.fail(where, f"expected a unit vector, got {a.tolist()}")
         return a
 
@@ -182,7 +180,8 @@ class JsonReader:
         a = np.array(
             [self.vector(r, f"{where}[{i}]", 3) for i, r in enumerate(items)], dtype=float
         ).reshape(-1, 3)
-        if orthonormal and a.size and not np.allclose(a @ a.T, np.eye(len(a)), atol=1e-4):
+        eye = np.eye(len(a))
+        if orthonormal and a.size and not np.allclose(a @ a.T, eye, atol=_UNIT_TOLERANCE):
             raise self.fail(where, "rows must be orthonormal unit vectors")
         return a
 

@@ -8,6 +8,7 @@ velocity of the point at the origin of the frame the twist is expressed in.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -33,7 +34,7 @@ def check_quaternion(q: npt.ArrayLike) -> FloatArray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"quaternion has non-finite entries: {arr.tolist()}")
     n = float(np.linalg.norm(arr))
-    if n < 1e-9:
+    if n < tol.quaternion_zero_norm:
         raise ValueError("quaternion has zero norm")
     return arr / n
 
@@ -101,7 +102,8 @@ def quaternions_from_matrices(R: npt.ArrayLike) -> FloatArray:
     """
     M = np.array(R, dtype=np.float64).reshape(-1, 3, 3)
     gram = M @ M.transpose(0, 2, 1)
-    ortho = np.all(np.isclose(gram, np.eye(3), rtol=1e-5, atol=1e-12), axis=(1, 2))
+    rtol, atol = tol.orthogonal_rtol, tol.orthogonal_atol
+    ortho = np.all(np.isclose(gram, np.eye(3), rtol=rtol, atol=atol), axis=(1, 2))
     if not ortho.all():
         U, _, Vt = np.linalg.svd(M[~ortho], full_matrices=False)
         M[~ortho] = U @ Vt
@@ -133,8 +135,8 @@ def matrix_from_axis_angle(axis: npt.ArrayLike, angle: float) -> FloatArray:
 
     a = np.asarray(axis, dtype=float)
     n = float(np.linalg.norm(a))
-    if n < 1e-12:
-        if abs(angle) > 1e-12:
+    if n < tol.zero_norm:
+        if abs(angle) > tol.zero_norm:
             raise ValueError("axis-angle with zero axis and non-zero angle")
         return np.eye(3)
     return np.asarray(Rotation.from_rotvec(a / n * angle).as_matrix(), dtype=float)
@@ -189,7 +191,7 @@ def pose_from_twist(twist: npt.ArrayLike) -> FloatArray:
     w, v = xi[:3], xi[3:]
     th = float(np.linalg.norm(w))
     W = skew(w)
-    if th < 1e-12:
+    if th < tol.zero_norm:
         R = np.eye(3) + W
         V = np.eye(3) + 0.5 * W
     else:
@@ -214,6 +216,25 @@ def rotation_angle(R: npt.ArrayLike) -> float:
 # --------------------------------------------------------------------------------------------
 # The pose validator
 # --------------------------------------------------------------------------------------------
+
+
+def perpendicular_basis(n: FloatArray) -> FloatArray:
+    """Return a deterministic orthonormal basis (2, 3) of the plane perpendicular to unit ``n``.
+
+    ``t1 = n x (1, 0, 0)`` normalised (``n x (0, 1, 0)`` when ``|n_x| >= 0.9``), ``t2 = n x t1``,
+    so ``(t1, t2, n)`` is right-handed. The one basis of the contact search and of pose
+    correction (``n`` is not normalised here).
+
+    Examples
+    --------
+    >>> perpendicular_basis(np.array([0.0, 0.0, 1.0])).tolist()
+    [[0.0, 1.0, -0.0], [-1.0, 0.0, 0.0]]
+    """
+    x, y, z = float(n[0]), float(n[1]), float(n[2])
+    t1 = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])
+    t1 /= math.sqrt(float(t1 @ t1))
+    a, b, c = float(t1[0]), float(t1[1]), float(t1[2])
+    return np.stack([t1, np.array([y * c - z * b, z * a - x * c, x * b - y * a])])
 
 
 def pose_defect(X: npt.ArrayLike) -> tuple[int, str, str] | None:

@@ -18,7 +18,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from apo.constants import UNITS
+from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
 from apo.jsonform import JsonReader, rounded, rounded_list, rounded_rows
@@ -543,7 +543,7 @@ def _read_state(rd: JsonReader, sd_: Any, w: str, k: float, ids: set[str], prev_
     pd = rd.obj(rd.get(sd, "pose", w), f"{w}.pose")
     pos = rd.vector(rd.get(pd, "position", f"{w}.pose"), f"{w}.pose.position", 3) * k
     quat = rd.vector(rd.get(pd, "quaternion", f"{w}.pose"), f"{w}.pose.quaternion", 4)
-    if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-6:
+    if abs(float(np.linalg.norm(quat)) - 1.0) > tol.json_quaternion_norm:
         raise rd.fail(f"{w}.pose.quaternion", f"not a unit quaternion: {quat.tolist()}")
     pf = sd.get("pose_frame")
     same_as = sd.get("same_as")
@@ -588,7 +588,7 @@ def element_from_dict(rd: JsonReader, ed_: Any, we: str, k: float) -> Element:
     if not normals_l:
         raise rd.fail(f"{we}.normals", "expected at least one normal")
     normals = np.array([rd.vector(n, f"{we}.normals[{m}]", 3) for m, n in enumerate(normals_l)])
-    if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > 1e-4):
+    if np.any(np.abs(np.linalg.norm(normals, axis=1) - 1.0) > tol.json_unit_norm):
         raise rd.fail(f"{we}.normals", "normals must be unit vectors")
     return Element(
         kind=rd.string(rd.get(ed, "kind", we), f"{we}.kind", KINDS),

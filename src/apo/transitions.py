@@ -28,9 +28,10 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import tol
 from apo.dof import DofGeometry, DofResult
 from apo.errors import InputFormatError
-from apo.spatial import check_pose
+from apo.spatial import check_pose, rotation_angle
 from apo.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -115,9 +116,8 @@ _PUSH = frozenset({(DofKind.M, DofKind.D), (DofKind.M, DofKind.SD)})
 _RELEASE = frozenset({(DofKind.D, DofKind.M), (DofKind.SD, DofKind.M)})
 _SLIDE = frozenset({(DofKind.M, DofKind.SM)})
 
-#: Two unit vectors count as sharing a direction when the cosine of their angle exceeds this
-#: (used to pick the principal directions a sub-skill acts in).
-_EPS_NORM = 1e-9
+#: A sub-skill direction shorter than this is zero; relative rank cut of its subspaces.
+_EPS_NORM = tol.subskill_direction
 
 
 def is_practical(source: DofKind | str, target: DofKind | str) -> bool:
@@ -649,7 +649,7 @@ def _twists_for_axes(axes: FloatArray, geometry: DofGeometry | None) -> FloatArr
         return None
     coef = axes @ r_maint.T  # axes lie in span(r_maint), which has orthonormal rows
     xi = coef @ twists
-    if not np.allclose(xi[:, :3], axes, atol=1e-6):
+    if not np.allclose(xi[:, :3], axes, atol=tol.twist_axis_match):
         return None
     return np.asarray(xi, dtype=np.float64)
 
@@ -658,10 +658,10 @@ def _relative_twist(x_before: FloatArray, x_after: FloatArray) -> FloatArray:
     """Rotation vector and displacement of the origin of ``X_after inv(X_before)``."""
     rel = x_after @ np.linalg.inv(x_before)
     r = rel[:3, :3]
-    angle = float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = rotation_angle(r)
     w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     s = float(np.linalg.norm(w))
-    omega = w * (angle / s) if s > 1e-12 else np.zeros(3)
+    omega = w * (angle / s) if s > tol.zero_norm else np.zeros(3)
     return np.concatenate([omega, rel[:3, 3]])
 
 

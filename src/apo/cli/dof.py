@@ -12,7 +12,6 @@ import argparse
 import json
 import sys
 import warnings
-from pathlib import Path
 from typing import Any
 
 from apo.errors import InputFormatError
@@ -75,19 +74,9 @@ def load_contacts(path: str) -> list[Any]:
     import numpy as np
 
     from apo.dof import ContactPoint, check_arrays
+    from apo.io.jsonfile import read_json
 
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputFormatError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFormatError(f"{path}: cannot read: {exc}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFormatError(
-            f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
+    data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("contacts"), list):
         raise InputFormatError(f'{path}: expected an object with a "contacts" list')
     points: list[list[float]] = []

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 
 
@@ -31,7 +32,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--dpi", type=int, default=200, help="resolution of PNG figures (default 200)")
     p.add_argument(
         "--model-units",
-        choices=("mm", "cm", "m", "in"),
+        choices=tuple(UNITS),
         help="unit of mesh model files (STL/OBJ/PLY; default: the task's units)",
     )
     p.set_defaults(func=run)

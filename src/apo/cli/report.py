@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 
 
@@ -41,7 +41,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--model-units",
-        choices=("mm", "cm", "m", "in"),
+        choices=tuple(UNITS),
         help="unit of mesh model files (STL/OBJ/PLY; default: the task's units)",
     )
     p.set_defaults(func=run)
@@ -49,18 +49,10 @@ def register(subparsers: Any) -> None:
 
 def read_task_json(path: Path) -> dict[str, Any]:
     """Read and validate ``task.json``; return its document (clear errors naming the file)."""
+    from apo.io.jsonfile import read_json
     from apo.task import task_from_dict
 
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputFormatError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise InputFormatError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFormatError(f"{path}: not JSON: {exc}") from None
+    doc = read_json(path)
     task_from_dict(doc, source=str(path))  # validates every field
     return dict(doc)
 

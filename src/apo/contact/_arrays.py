@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from apo.spatial import perpendicular_basis
 from apo.typing import BoolArray, FloatArray, IntArray
 
 _EMPTY_I = np.zeros(0, dtype=np.int64)
@@ -32,13 +33,7 @@ def _cross3(a: FloatArray, b: FloatArray) -> FloatArray:
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
-def _plane_basis(n: FloatArray) -> FloatArray:
-    """Orthonormal basis (2, 3) of the plane perpendicular to unit ``n`` (deterministic)."""
-    x, y, z = float(n[0]), float(n[1]), float(n[2])
-    # t1 = n x (1, 0, 0), or n x (0, 1, 0) when n is close to x
-    t1 = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])
-    t1 /= math.sqrt(float(t1 @ t1))
-    return np.stack([t1, _cross3(n, t1)])
+_plane_basis = perpendicular_basis  # the one basis of the plane perpendicular to a unit vector
 
 
 def _dedupe(

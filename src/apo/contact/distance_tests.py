@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from apo.constants import tol
 from apo.contact._arrays import (
     _EMPTY_F,
     _EMPTY_I,
@@ -25,7 +26,7 @@ from apo.geometry import closest_point_on_segment, point_face_distance, segment_
 from apo.typing import FloatArray, IntArray
 
 # Bounding-sphere tests use radius * this: rounding never drops a pair within the threshold.
-_SPHERE_MARGIN = 1.0 + 1e-9
+_SPHERE_MARGIN = 1.0 + tol.sphere_margin
 
 
 def _point_triangle_distance(

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from apo.constants import tol
 from apo.contact._arrays import _EMPTY_3, _EMPTY_I, _csr, _dedupe, _plane_basis
 from apo.contact.elements import _CODE, Feature
 from apo.geometry import Polyhedron, local_solid
@@ -97,7 +98,7 @@ class _Pieces:
 
 def _tangent_cone(normals: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Lineality basis and extreme rays of ``{x : normals @ x <= 0}`` (exact model data)."""
-    eps = 1e-9
+    eps = tol.model_cone
     _, sv, vt = np.linalg.svd(normals)
     rank = int(np.count_nonzero(sv > eps * sv[0]))
     if rank == 1:
@@ -121,7 +122,7 @@ def _tangent_cone(normals: FloatArray) -> tuple[FloatArray, FloatArray]:
                     cand += [c, -c]
     cand_arr = np.asarray(cand)
     ok = np.all(cand_arr @ normals.T <= eps, axis=1)
-    return lin, _dedupe(cand_arr[ok], 1e-7)
+    return lin, _dedupe(cand_arr[ok], tol.model_cone_merge)
 
 
 class _ModelData:
@@ -295,7 +296,7 @@ def _sample_triangles(
         a1, a2 = int(n1[sel[0]]), int(n2[sel[0]])
         i, j = np.meshgrid(np.arange(a1 + 1), np.arange(a2 + 1), indexing="ij")
         u, w = (i / a1).ravel(), (j / a2).ravel()
-        keep = u + w <= 1.0 + 1e-12
+        keep = u + w <= 1.0 + tol.zero_norm
         u, w = u[keep], w[keep]
         p = (
             A[sel, None, :]

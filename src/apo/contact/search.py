@@ -14,6 +14,7 @@ from collections.abc import Iterable
 import numpy as np
 import numpy.typing as npt
 
+from apo.constants import tol
 from apo.contact.candidates import _candidates
 from apo.contact.classification import _classify, _elements
 from apo.contact.distance_tests import _by_frame, _edge_pairs, _near_features, _touching
@@ -214,7 +215,7 @@ def _find_frames(
     per_frame = _elements(
         g,
         e,
-        3.0 * angle_tol,
+        tol.ray_merge_factor * angle_tol,
         (wfr, R, t, VG, n_act),
         (kind, fa_k, fa_i, fb_k, fb_i, valid),
         (count, rays, extra),

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from apo.constants import tol
 from apo.contact._arrays import (
     _EMPTY_3,
     _cross3,
@@ -26,6 +27,10 @@ from apo.contact._arrays import (
 )
 from apo.contact.model_data import _Cone, _ModelData, _Pieces
 from apo.typing import BoolArray, FloatArray, IntArray
+
+_CENTRE_WEIGHT = 1e-3
+"""Tie-break weight (1/rad), not a tolerance: among the rays of a collapsed fan, prefer those
+of E's model, then the one nearest the middle (angles < pi, so the weight never overrides)."""
 
 
 def _arc_rays(
@@ -53,7 +58,7 @@ def _arc_rays(
     mx = sum(c[0] for c in cand)
     my = sum(c[1] for c in cand)
     nm = math.hypot(mx, my)
-    if nm < 1e-9:
+    if nm < tol.ray_sum_norm:
         return np.zeros((0, 3))
     mx, my = mx / nm, my / nm
     ang = [math.atan2(-sx * my + sy * mx, sx * mx + sy * my) for sx, sy, _ in cand]
@@ -63,7 +68,7 @@ def _arc_rays(
     if ang[ihi] - ang[ilo] < merge_angle:
         if any(c[2] for c in cand):
             mid = 0.5 * (ang[ihi] + ang[ilo])
-            score = [c[2] - 1e-3 * abs(a - mid) for c, a in zip(cand, ang, strict=True)]
+            score = [c[2] - _CENTRE_WEIGHT * abs(a - mid) for c, a in zip(cand, ang, strict=True)]
             pick = cand[max(range(len(score)), key=score.__getitem__)]
             r2 = np.array([pick[0], pick[1]])
         else:
@@ -89,7 +94,7 @@ def _separating_rays(
     elif len(lin) == 1:
         vt = np.concatenate([lin, _plane_basis(lin[0])])
         rank = 1
-    elif len(lin) == 2 and abs(float(lin[0] @ lin[1])) < 0.999:
+    elif len(lin) == 2 and abs(float(lin[0] @ lin[1])) < tol.parallel_cos:
         u = _cross3(lin[0], lin[1])
         nu = math.sqrt(float(u @ u))
         vt = np.stack([lin[0], _cross3(u, lin[0]) / nu, u / nu])
@@ -150,7 +155,7 @@ def _snap_rays(
             out[i] = exact[g_best]
             snapped = True
     if snapped and len(out) > 1:
-        out = _dedupe(out, 1e-9)
+        out = _dedupe(out, tol.ray_merge)
     return out
 
 
@@ -220,7 +225,7 @@ def _arc_rays_batch(
         ok &= cand[:, :, 0] * A2[:, None, j, 0] + cand[:, :, 1] * A2[:, None, j, 1] >= -sin_tol
     mean = (ok[:, None, :].astype(np.float64) @ cand)[:, 0]
     nm = np.hypot(mean[:, 0], mean[:, 1])
-    good = ok.any(axis=1) & (nm >= 1e-9)
+    good = ok.any(axis=1) & (nm >= tol.ray_sum_norm)
     mean /= np.where(good, nm, 1.0)[:, None]
     ang = np.arctan2(
         cand[:, :, 1] * mean[:, None, 0] - cand[:, :, 0] * mean[:, None, 1],
@@ -233,10 +238,11 @@ def _arc_rays_batch(
     lo, hi = cand[ar, ilo], cand[ar, ihi]
     collapsed = (a_hi - a_lo) < merge_angle
     okp = np.asarray(ok & c_prio, dtype=bool)
-    score = np.where(okp, 1.0 - 1e-3 * np.abs(ang - 0.5 * (a_hi + a_lo)[:, None]), -np.inf)
+    off_centre = np.abs(ang - 0.5 * (a_hi + a_lo)[:, None])
+    score = np.where(okp, 1.0 - _CENTRE_WEIGHT * off_centre, -np.inf)
     pick = cand[ar, np.argmax(score, axis=1)]
     both = lo + hi
-    both /= np.maximum(np.hypot(both[:, 0], both[:, 1]), 1e-300)[:, None]
+    both /= np.maximum(np.hypot(both[:, 0], both[:, 1]), tol.division_floor)[:, None]
     any_e: BoolArray = np.asarray(okp.any(axis=1), dtype=bool)
     one = np.where(any_e[:, None], pick, both)
     r2 = np.where(collapsed[:, None, None], one[:, None, :], np.stack([lo, hi], axis=1))
@@ -280,9 +286,9 @@ def _snap_batch(
     count = count.copy()
     two = np.flatnonzero((count == 2) & snapped.any(axis=1))
     if len(two):
-        # _dedupe(rays, 1e-9): the second ray joins the first iff r0 . r1 >= cos(1e-9)
+        # _dedupe(rays, tol.ray_merge): the second ray joins the first iff r0 . r1 >= cos(ray_merge)
         r0, r1 = out[two, 0], out[two, 1]
-        same = _dot(r0, r1) >= math.cos(1e-9)
+        same = _dot(r0, r1) >= math.cos(tol.ray_merge)
         m = r0 + r1
         out[two, 0] = np.where(
             same[:, None],
@@ -315,7 +321,7 @@ def _edge_edge_rays_batch(
     l1 = PE.lin[PE.lin_ptr[pe]]
     u = _cross_rows(l0, l1)
     nu = np.sqrt(_dot(u, u))
-    solved = (np.abs(_dot(l0, l1)) < 0.999) & (nu > sin_tol)
+    solved = (np.abs(_dot(l0, l1)) < tol.parallel_cos) & (nu > sin_tol)
     u = u / np.where(solved, nu, 1.0)[:, None]
     # min and max of ineq . u over G's rays (rotated) and minus E's rays
     lo = np.full(n, np.inf)
@@ -453,7 +459,7 @@ def _cone_pairs(
     """
     PG, PE = g.pieces, e.pieces
     sin_tol = math.sin(angle_tol)
-    merge = 3.0 * angle_tol
+    merge = tol.ray_merge_factor * angle_tol
     n = len(pg)
     count = np.zeros(n, dtype=np.int64)
     rays = np.zeros((n, 2, 3))

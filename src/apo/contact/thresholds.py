@@ -7,11 +7,11 @@ import numpy as np
 from apo.constants import tol
 from apo.geometry import Polyhedron
 
-DEFAULT_THRESHOLD_FRACTION = 1e-3
+DEFAULT_THRESHOLD_FRACTION = tol.threshold_fraction
 """Default threshold as a fraction of the smaller model's ``scale`` (bounding diagonal)."""
 
 
-OBSERVED_THRESHOLD_FRACTION = 0.035
+OBSERVED_THRESHOLD_FRACTION = tol.observed_threshold_fraction
 """Default threshold for observed poses, as a fraction of the smaller model's ``scale``.
 
 Observed poses carry vision noise of millimetres; :data:`DEFAULT_THRESHOLD_FRACTION` (a

@@ -52,11 +52,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from apo.constants import UNITS, tol
+from apo.constants import UNITS
 from apo.errors import InputFormatError
 from apo.spatial import (
     matrices_from_quaternions,
     matrix_from_axis_angle,
+    pose_defect,
     quaternion_from_matrix,
 )
 from apo.typing import FloatArray, IntArray
@@ -614,13 +615,17 @@ def _warn_quaternion_norms(path: Path, norms: FloatArray, lines: IntArray) -> No
 
 
 def _check_rotations(path: Path, x: FloatArray) -> FloatArray:
-    """Return the 3x3 blocks of poses ``x`` (N, 4, 4); raise if one is not a rotation."""
-    r = x[:, :3, :3]
-    err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((err > tol.rotation) | (np.linalg.det(r) <= 0))
-    if bad.size:
-        raise InputFormatError(f"{path}: X_EG[{int(bad[0])}] has no rotation in its 3x3 block")
-    return r
+    """Return the 3x3 blocks of poses ``x`` (N, 4, 4) that pass the one pose rule.
+
+    The rule is :func:`apo.spatial.pose_defect` (``tol.rotation``); a failing pose raises
+    ``InputFormatError`` naming the file and the pose.
+    """
+    defect = pose_defect(x)
+    if defect is not None:
+        k, what, description = defect
+        problem = "has no rotation in its 3x3 block" if what == "rotation" else description
+        raise InputFormatError(f"{path}: X_EG[{k}] {problem}")
+    return x[:, :3, :3]
 
 
 def write_pose_csv(

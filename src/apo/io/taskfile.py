@@ -8,10 +8,10 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from apo.errors import InputFormatError
+from apo.io.jsonfile import read_json
 from apo.outputs import sha256_file
 from apo.task import ModelRef, TaskModel, task_from_dict
 
@@ -28,21 +28,7 @@ def read_task(path: str | Path) -> TaskModel:
         field :func:`apo.task.task_from_dict` rejects. Every message starts with the path.
     """
     p = Path(path)
-    if not p.is_file():
-        raise InputFormatError(f"{p}: file not found")
-    try:
-        text = p.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise InputFormatError(f"{p}: not a text file ({exc.reason})") from None
-    except OSError as exc:
-        raise InputFormatError(f"{p}: cannot read ({exc.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFormatError(
-            f"{p}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}"
-        ) from None
-    return task_from_dict(data, source=str(p))
+    return task_from_dict(read_json(p), source=str(p))
 
 
 def model_paths(task: TaskModel, path: str | Path) -> tuple[Path, Path]:

@@ -233,12 +233,9 @@ def read_calibration(path: Path, what: str) -> Any:
     InputFormatError
         The file is missing or is not valid JSON (the message names the file).
     """
-    if not path.is_file():
-        raise InputFormatError(f"{path}: {what} calibration file not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputFormatError(f"{path}: not valid JSON: {exc}") from None
+    from apo.io.jsonfile import read_json
+
+    return read_json(path, what=f"{what} calibration file")
 
 
 def write_camera(path: str | Path, camera: Camera) -> None:

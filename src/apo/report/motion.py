@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -28,22 +27,12 @@ from typing import Any
 import numpy as np
 
 from apo.errors import InputFormatError
+from apo.io.jsonfile import read_json
 from apo.report.html import MotionTrack
 
 __all__ = ["read_motion_tracks", "read_pose_track_csv", "read_replay_track"]
 
 _COLS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputFormatError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFormatError(f"{path}: cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise InputFormatError(f"{path}: not JSON: {exc}") from None
 
 
 def _primitive_label(p: Mapping[str, Any]) -> str:
@@ -158,7 +147,7 @@ def read_motion_tracks(
     from apo.task import UNITS
 
     p = Path(path)
-    doc = _read_json(p)
+    doc = read_json(p)
     if not isinstance(doc, dict) or doc.get("schema") != "apo.motion/1":
         raise InputFormatError(f"{p}: not a motion.json (schema apo.motion/1 expected)")
     try:
@@ -228,7 +217,7 @@ def read_replay_track(path: str | Path, *, units: str) -> tuple[MotionTrack, lis
     verdict: Mapping[str, Any] = {}
     files = []
     if json_path.is_file():
-        doc = _read_json(json_path)
+        doc = read_json(json_path)
         if not isinstance(doc, dict):
             raise InputFormatError(f"{json_path}: expected a JSON object")
         verdict = doc
