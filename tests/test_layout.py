@@ -164,7 +164,6 @@ def test_imports_point_down_the_layers(path: Path) -> None:
 MAX_FUNCTION_LINES = 80
 LONG_FUNCTIONS_ALLOWED: dict[str, str] = {
     # split pending (session 2): each owner removes its entry when it splits the function.
-    "sim.replay.replay": "simdyn: split pending",
 }
 
 

@@ -38,7 +38,7 @@ def test_contact_parameters_are_the_stated_ones() -> None:
     m = scene.model
     p = ContactParameters()
     assert (p.timestep, p.solref, p.solimp, p.impratio) == (
-        0.001, (0.004, 1.0), (0.99, 0.999, 0.0001), 10.0,
+        0.001, (0.002, 1.0), (0.99, 0.999, 0.0001), 10.0,
     )  # fmt: skip
     assert m.opt.timestep == p.timestep
     assert m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
@@ -175,19 +175,33 @@ def test_the_executor_does_what_motion_json_says() -> None:
 
 @pytest.mark.slow
 @pytest.mark.realdata
+@pytest.mark.parametrize(
+    ("perturb", "offset", "seed"),
+    [
+        ("2,2", "1,1", "4"),
+        # benchmarks/replay.py's real trial 33: the peg's edge lies on the rim's edge (a line
+        # contact, one MuJoCo contact point); it sank 0.13 mm with solref 0.004 (docs/sim.md)
+        ("0.232074,1.415557", "0.560476,0.847557", "33"),
+    ],
+)
 def test_the_real_demonstration_replays(
-    real_data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    real_data_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    perturb: str,
+    offset: str,
+    seed: str,
 ) -> None:
     out = tmp_path / "real"
     demo = real_data_dir / "peg_in_hole.pose.list"
     assert main(["analyze", str(demo), "--out", str(out), "--no-plot", "--no-report"]) == 0
     capsys.readouterr()
-    rc = main(["replay", str(out / "task.json"), "--json", "--perturb", "2,2",
-               "--environment-offset", "1,1", "--seed", "4"])  # fmt: skip
+    rc = main(["replay", str(out / "task.json"), "--json", "--perturb", perturb,
+               "--environment-offset", offset, "--seed", seed, "--clearance", "0.2"])  # fmt: skip
     res = json.loads(capsys.readouterr().out)
     assert rc == 0, res["verdict"]
     assert res["success"] and res["final_state"] == res["task_states"][-1]
-    assert res["max_penetration"] < 0.05  # mm
+    assert 0 < res["max_penetration"] < 0.05  # mm: the target at 0.2 mm clearance
 
 
 @pytest.mark.slow

@@ -127,6 +127,7 @@ def result_dict(res: Any, units: str) -> dict[str, Any]:
         "states_reached": list(res.states_reached),
         "task_states": list(res.task_states),
         "final_state": res.final_state,
+        "final_by_symmetry": bool(getattr(res, "by_symmetry", False)),
         "final_pose": {"position": [float(x) * k for x in p], "quaternion": [float(x) for x in q]},
         "max_force": float(res.max_force),
         "max_penetration": float(res.max_penetration) * k,

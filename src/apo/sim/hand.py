@@ -74,6 +74,9 @@ class Hand:
         self._f6 = np.zeros(6)
         self._qd = np.zeros(4)
         self._e3 = np.zeros(3)
+        ngeom = int(scene.model.ngeom)  # type: ignore[attr-defined]
+        self._grasped = np.zeros(ngeom, dtype=np.bool_)
+        self._grasped[list(scene.grasped_geoms)] = True
 
     # ---------------------------------------------------------------- state
     @property
@@ -84,44 +87,53 @@ class Hand:
     def pose(self) -> FloatArray:
         """Return the current ``X_WG`` (4x4, metres)."""
         d = self.scene.data
-        X = np.eye(4)
+        X = np.empty((4, 4))
         X[:3, :3] = d.xmat[self.scene.hand].reshape(3, 3)  # type: ignore[attr-defined]
         X[:3, 3] = d.xpos[self.scene.hand]  # type: ignore[attr-defined]
+        X[3] = (0.0, 0.0, 0.0, 1.0)
         return X
 
     def velocity(self, point_W: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Angular velocity and velocity of the body point at ``point_W`` (world frame)."""
         d = self.scene.data
         qv = d.qvel  # type: ignore[attr-defined]
-        X = self.pose()
-        w = X[:3, :3] @ qv[3:6]
-        v = qv[0:3] + _cross(w, point_W - X[:3, 3])
+        R = d.xmat[self.scene.hand].reshape(3, 3)  # type: ignore[attr-defined]
+        w = R @ qv[3:6]
+        v = qv[0:3] + _cross(w, point_W - d.xpos[self.scene.hand])  # type: ignore[attr-defined]
         return w, v
 
     def contact_wrench(self, point_W: FloatArray) -> tuple[FloatArray, FloatArray, float]:
         """Contact force on the grasped object, its torque about ``point_W``, penetration.
 
-        Returns ``(force N, torque N m, largest penetration m)``, world frame.
+        Returns ``(force N, torque N m, largest penetration m)``, world frame. The forces
+        are the constraint forces of the contacts in their frames (elliptic cones: the
+        first three components are normal and tangential forces, as ``mj_contactForce``
+        returns them); every contact of the scene is between the grasped object and the
+        environment (the pieces of one body never collide).
         """
-        m, d = self.scene.model, self.scene.data
+        d = self.scene.data
         n = int(d.ncon)  # type: ignore[attr-defined]
         if n == 0:
             return np.zeros(3), np.zeros(3), 0.0
         con = d.contact  # type: ignore[attr-defined]
-        geoms = self.scene.grasped_geoms
-        forces = np.zeros((n, 3))
-        for i in range(n):
-            self._mj.mj_contactForce(m, d, i, self._f6)
-            forces[i] = self._f6[:3]
+        adr = con.efc_address[:n]
+        live = adr >= 0
+        fl = np.zeros((n, 3))
+        efc = d.efc_force  # type: ignore[attr-defined]
+        fl[live] = efc[adr[live, None] + np.arange(3)]
         frames = con.frame[:n].reshape(n, 3, 3)
-        f = np.einsum("nji,nj->ni", frames, forces)  # on geom2, from geom1
-        g1 = np.array([int(g) in geoms for g in con.geom1[:n]])
-        g2 = np.array([int(g) in geoms for g in con.geom2[:n]])
-        f = np.where(g1[:, None], -f, f) * (g1 | g2)[:, None]
+        f = np.einsum("nji,nj->ni", frames, fl)  # on geom2, from geom1
+        sign = np.where(self._grasped[con.geom1[:n]], -1.0, 1.0)
+        f *= sign[:, None]
+        F = f.sum(axis=0)
         arm = con.pos[:n] - point_W
-        T = np.cross(arm, f).sum(axis=0)
-        pen = max(0.0, -float(np.min(con.dist[:n])))
-        return f.sum(axis=0), T, pen
+        T = np.array([
+            arm[:, 1] @ f[:, 2] - arm[:, 2] @ f[:, 1],
+            arm[:, 2] @ f[:, 0] - arm[:, 0] @ f[:, 2],
+            arm[:, 0] @ f[:, 1] - arm[:, 1] @ f[:, 0],
+        ])  # fmt: skip
+        pen = max(0.0, -float(con.dist[:n].min()))
+        return F, T, pen
 
     def _rotation_error(self, X_des: FloatArray) -> FloatArray:
         """Rotation vector (world frame) that turns the current orientation into X_des's."""
@@ -166,27 +178,27 @@ class Hand:
         (force, torque) : the sensed contact force and torque about the centre after the step.
         """
         g = self.gains
-        X = self.pose()
-        c = X[:3, :3] @ center_G + X[:3, 3]
+        d = self.scene.data
+        b = self.scene.hand
+        R = d.xmat[b].reshape(3, 3)  # type: ignore[attr-defined]
+        c = R @ center_G + d.xpos[b]  # type: ignore[attr-defined]
         c_des = X_des[:3, :3] @ center_G + X_des[:3, 3]
         w, v = self.velocity(c)
-        I3 = np.eye(3)
-        St = np.zeros((3, 3)) if S_t is None else S_t
-        Sr = np.zeros((3, 3)) if S_r is None else S_r
-        fc = np.zeros(3) if force is None else force
-        tc = np.zeros(3) if torque is None else torque
-        e_p = c_des - c
-        e_r = self._rotation_error(X_des)
-        F = St @ (fc - slow * g.df_t * v) + (I3 - St) @ (g.k_t * e_p - g.d_t * v)
-        T = Sr @ (tc - g.df_r * w) + (I3 - Sr) @ (g.k_r * e_r - g.d_r * w)
-        d = self.scene.data
-        com = d.xipos[self.scene.hand]  # type: ignore[attr-defined]
-        xfrc = d.xfrc_applied[self.scene.hand]  # type: ignore[attr-defined]
+        F = g.k_t * (c_des - c) - g.d_t * v
+        if S_t is not None:
+            fc = np.zeros(3) if force is None else force
+            F = F + S_t @ (fc - slow * g.df_t * v - F)
+        T = g.k_r * self._rotation_error(X_des) - g.d_r * w
+        if S_r is not None:
+            tc = np.zeros(3) if torque is None else torque
+            T = T + S_r @ (tc - g.df_r * w - T)
+        com = d.xipos[b]  # type: ignore[attr-defined]
+        xfrc = d.xfrc_applied[b]  # type: ignore[attr-defined]
         xfrc[:3] = F
         xfrc[3:] = T + _cross(c - com, F)
         self._mj.mj_step(self.scene.model, d)
-        X = self.pose()
-        Fc, Tc, pen = self.contact_wrench(X[:3, :3] @ center_G + X[:3, 3])
+        R = d.xmat[b].reshape(3, 3)  # type: ignore[attr-defined]
+        Fc, Tc, pen = self.contact_wrench(R @ center_G + d.xpos[b])  # type: ignore[attr-defined]
         self.max_force = max(self.max_force, float(np.linalg.norm(Fc)))
         self.max_penetration = max(self.max_penetration, pen)
         return Fc, Tc

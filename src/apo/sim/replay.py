@@ -8,9 +8,9 @@ the outcome with apo's own contact analysis: :class:`apo.contact.ContactFinder` 
 simulated pose of the grasped object in the (moved) environment's frame.
 
 Success means the final contact state has the same elements as the task's final state
-(kind, grasped feature, environment feature), compared exactly by feature ids (both come
-from the same model files). The states visited are the task states whose element sets the
-simulated poses match, in order.
+(kind, grasped feature, environment feature), by feature ids (both come from the same model
+files), up to the models' symmetries (:func:`judge`). The states visited are the task
+states whose element sets the simulated poses match, in order.
 """
 
 from __future__ import annotations
@@ -32,7 +32,17 @@ from apo.spatial import matrix_from_axis_angle
 from apo.task import TaskModel
 from apo.typing import FloatArray
 
-__all__ = ["SAMPLE_PERIOD", "ReplayResult", "Visit", "random_motion", "replay"]
+__all__ = [
+    "SAMPLE_PERIOD",
+    "Judgement",
+    "ReplayResult",
+    "Visit",
+    "judge",
+    "model_symmetries",
+    "random_motion",
+    "replay",
+    "state_ids",
+]
 
 SAMPLE_PERIOD = 0.01
 """Seconds between the recorded poses (trajectory and contact-state sequence)."""
@@ -92,6 +102,8 @@ class ReplayResult:
         One line for people.
     settings : dict
         Perturbation, offset, clearance, seed, contact parameters, gains.
+    by_symmetry : bool
+        The final state matched the task's only through a symmetric twin (:func:`judge`).
     """
 
     success: bool
@@ -110,6 +122,7 @@ class ReplayResult:
     X_EG: FloatArray
     verdict: str
     settings: dict[str, Any] = field(default_factory=dict)
+    by_symmetry: bool = False
 
 
 def random_motion(
@@ -136,13 +149,52 @@ def _key(elements: Any) -> frozenset[tuple[str, Any, Any]]:
     )
 
 
-def state_ids(finder: Any, task: TaskModel) -> dict[frozenset[tuple[str, Any, Any]], str]:
+_CACHE: dict[tuple[str, str], Any] = {}
+"""Symmetries and convex pieces of the models replayed in this process, by content."""
+
+
+def _cached(kind: str, poly: Polyhedron, make: Any) -> Any:
+    """``make(poly)``, remembered by the model's content (many replays of one task)."""
+    import hashlib
+
+    h = hashlib.sha1(np.ascontiguousarray(poly.vertices).tobytes())
+    for t in poly.face_triangles:
+        h.update(np.ascontiguousarray(t).tobytes())
+    key = (kind, h.hexdigest())
+    if key not in _CACHE:
+        if len(_CACHE) > 32:
+            _CACHE.clear()
+        _CACHE[key] = make(poly)
+    return _CACHE[key]
+
+
+def model_symmetries(poly: Polyhedron) -> list[Any]:
+    """Rigid symmetries of a model (:func:`apo.symmetry.symmetries`, identity first)."""
+    from apo.symmetry import symmetries
+
+    return list(
+        _cached(
+            "symmetries", poly, lambda p: symmetries(p.vertices, np.concatenate(p.face_triangles))
+        )
+    )
+
+
+def state_ids(
+    finder: Any,
+    task: TaskModel,
+    symmetries: tuple[Sequence[Any], Sequence[Any]] | None = None,
+) -> dict[frozenset[tuple[str, Any, Any]], str]:
     """Element sets of the task's states, by the ids of ``finder``'s models.
 
     Each state is known by its elements as recorded in the task and as ``finder`` finds them
     at the state's pose: the models loaded for the replay may number their features
     differently from the ones the task was analysed with (a model file re-triangulated or
-    re-ordered); the second key is the honest mapping then.
+    re-ordered); the second key is the honest mapping then. With ``symmetries`` (those of
+    the grasped object and of the environment, :func:`model_symmetries`), a state is also
+    known by the elements at each of its symmetric twins ``S_E^-1 X_EG S_G``: the same
+    contacts with other, symmetric, features (a T-peg turned half a turn about its stem
+    touches the other face of the slot with its other face). The exact keys come first: a
+    twin never takes the key of another state.
     """
     out: dict[frozenset[tuple[str, Any, Any]], str] = {}
     found = finder.find_batch(np.stack([s.X_EG for s in task.states]))
@@ -150,6 +202,15 @@ def state_ids(finder: Any, task: TaskModel) -> dict[frozenset[tuple[str, Any, An
         out.setdefault(_key(f.elements), s.id)
     for s in task.states:
         out.setdefault(_key(s.elements), s.id)
+    if symmetries is None:
+        return out
+    S_G = np.stack([y.S for y in symmetries[0]] or [np.eye(4)])
+    S_E_inv = np.linalg.inv(np.stack([y.S for y in symmetries[1]] or [np.eye(4)]))
+    twins = np.einsum("aij,sjk,bkl->sabil", S_E_inv, np.stack([s.X_EG for s in task.states]), S_G)
+    shape = twins.shape
+    found = finder.find_batch(twins.reshape(-1, 4, 4))
+    for k, f in enumerate(found):
+        out.setdefault(_key(f.elements), task.states[k // (shape[1] * shape[2])].id)
     return out
 
 
@@ -179,6 +240,163 @@ def _reached(visits: Sequence[Visit]) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Judgement:
+    """Apo's contact analysis of executed poses (:func:`judge`).
+
+    Attributes
+    ----------
+    success : bool
+        The final contact state is the task's final state (up to the models' symmetries).
+    final_state : str or None
+        Id of the task state the final contact state is (None: none of them).
+    by_symmetry : bool
+        The final state matched only through a symmetric twin of the task's state.
+    visits : list of Visit
+    states_reached : list of str
+    n_final_elements : int
+    threshold : float
+        Contact distance threshold used, metres.
+    """
+
+    success: bool
+    final_state: str | None
+    by_symmetry: bool
+    visits: list[Visit]
+    states_reached: list[str]
+    n_final_elements: int
+    threshold: float
+
+
+def judge(
+    task: TaskModel,
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    times: FloatArray,
+    X_EG: FloatArray,
+    *,
+    clearance: float = DEFAULT_CLEARANCE,
+    symmetric: bool = True,
+) -> Judgement:
+    """Judge executed poses by apo's own contact analysis (``docs/sim.md``, Verdict).
+
+    Parameters
+    ----------
+    task : TaskModel
+    grasped, environment : Polyhedron
+        The models the poses refer to (metres).
+    times : ndarray, shape (K,)
+        Seconds.
+    X_EG : ndarray, shape (K, 4, 4)
+        Poses of the grasped object in the environment's frame, metres.
+    clearance : float
+        Metres per side of the simulated parts: the contact threshold is
+        ``max(task threshold, 3 x clearance)``.
+    symmetric : bool
+        Compare contact states up to the models' symmetries (default).
+    """
+    from apo.contact import ContactFinder
+
+    threshold = max(task.threshold, 3.0 * clearance)
+    finder = ContactFinder(grasped, environment, threshold=threshold)
+    exact = state_ids(finder, task)
+    syms = (model_symmetries(grasped), model_symmetries(environment)) if symmetric else None
+    ids = state_ids(finder, task, syms) if symmetric else exact
+    visits, final_key = _visits(finder, ids, times, X_EG)
+    final_id = ids.get(final_key)
+    return Judgement(
+        success=final_id == task.states[-1].id,
+        final_state=final_id,
+        by_symmetry=final_id is not None and final_key not in exact,
+        visits=visits,
+        states_reached=_reached(visits),
+        n_final_elements=len(final_key),
+        threshold=threshold,
+    )
+
+
+def _start(
+    task: TaskModel,
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    perturb: tuple[float, float],
+    environment_offset: tuple[float, float],
+    seed: int,
+) -> tuple[FloatArray, FloatArray]:
+    """Return the perturbed start pose ``X_WG0`` and the environment's pose ``X_WE``."""
+    rng = np.random.default_rng(seed)
+    lo, hi = environment.vertices.min(axis=0), environment.vertices.max(axis=0)
+    X_start0 = task.states[0].X_EG
+    centroid = X_start0[:3, :3] @ grasped.vertices.mean(0) + X_start0[:3, 3]
+    X_pert = random_motion(rng, perturb[0], perturb[1], centroid)
+    X_WE = random_motion(rng, environment_offset[0], environment_offset[1], 0.5 * (lo + hi))
+    return X_pert @ X_start0, X_WE
+
+
+class _Recorder:
+    """Samples the hand's pose (environment frame) every :data:`SAMPLE_PERIOD` seconds."""
+
+    def __init__(self, scene: Any, video: Any = None) -> None:
+        self.X_EW = np.linalg.inv(scene.X_WE)
+        self.every = max(1, round(SAMPLE_PERIOD / scene.params.timestep))
+        self.scene, self.video = scene, video
+        self.count = 0
+        self.t: list[float] = []
+        self.X: list[FloatArray] = []
+
+    def __call__(self, hand: Hand) -> None:
+        self.count += 1
+        if self.count % self.every == 0:
+            self.t.append(hand.time)
+            self.X.append(self.X_EW @ hand.pose())
+            if self.video is not None:
+                self.video.capture(self.scene)
+
+    def finish(self, hand: Hand) -> tuple[FloatArray, FloatArray]:
+        """Add the last pose if not sampled; return the times and poses."""
+        if not self.t or hand.time > self.t[-1]:
+            self.t.append(hand.time)
+            self.X.append(self.X_EW @ hand.pose())
+        return np.asarray(self.t), np.stack(self.X)
+
+
+def _execute(
+    hand: Hand,
+    task: TaskModel,
+    program: Any,
+    playback: bool,
+    frames: tuple[FloatArray, FloatArray] | None,
+    sample: Any,
+    pace: str = "plan",
+) -> tuple[list[PrimitiveRun], str]:
+    """Run the skill program (default: ``apo.motion.plan(task)``) or the playback."""
+    if playback:
+        times, poses = frames if frames is not None else _state_poses(task)
+        if pace == "plan":
+            times = np.zeros(len(poses))  # no waiting: every move at the plan's speeds
+        return run_playback(hand, times, poses, hand.scene.com_G, sample), "playback"
+    if program is None:
+        from apo.motion import plan
+
+        program = plan(task)
+    return run_program(hand, program, sample), "skills"
+
+
+def _verdict(j: Judgement, goal: str, runs: Sequence[PrimitiveRun]) -> str:
+    failed = [r for r in runs if not r.ok]
+    why = (
+        ""
+        if not failed
+        else f"; primitive {failed[0].index} ({failed[0].kind}) {failed[0].outcome}"
+    )
+    twin = " (a symmetric twin)" if j.by_symmetry else ""
+    return (
+        f"{'SUCCESS' if j.success else 'FAILURE'}: final contact state "
+        f"{j.final_state or 'not in the task'}{twin} ({j.n_final_elements} elements), "
+        f"task's final state {goal}{why}"
+    )
+
+
 def replay(
     task: TaskModel,
     grasped: Polyhedron,
@@ -195,6 +413,7 @@ def replay(
     gains: Gains | None = None,
     frames: tuple[FloatArray, FloatArray] | None = None,
     video: Any = None,
+    symmetric: bool = True,
 ) -> ReplayResult:
     """Execute a task model in MuJoCo and judge the result.
 
@@ -226,106 +445,44 @@ def replay(
         Observed per-frame poses for the playback (seconds, (N, 4, 4) metres).
     video : apo.sim.video.Recorder, optional
         Receives the scene at every recorded sample.
+    symmetric : bool
+        Judge contact states up to the models' symmetries (:func:`judge`).
 
     Returns
     -------
     ReplayResult
     """
-    from apo.contact import ContactFinder
-
-    rng = np.random.default_rng(seed)
     dec = decompositions or {
-        "grasped": convex_pieces(grasped),
-        "environment": convex_pieces(environment),
+        "grasped": _cached("pieces", grasped, convex_pieces),
+        "environment": _cached("pieces", environment, convex_pieces),
     }
-    lo, hi = environment.vertices.min(axis=0), environment.vertices.max(axis=0)
-    X_start0 = task.states[0].X_EG
-    X_pert = random_motion(rng, perturb[0], perturb[1], X_start0[:3, :3] @ grasped.vertices.mean(0)
-                           + X_start0[:3, 3])  # fmt: skip
-    X_WE = random_motion(rng, environment_offset[0], environment_offset[1], 0.5 * (lo + hi))
-    X_WG0 = X_pert @ X_start0
+    X_WG0, X_WE = _start(task, grasped, environment, perturb, environment_offset, seed)
     scene = build_scene(
         grasped, environment, X_WG=X_WG0, X_WE=X_WE, clearance=clearance, params=params,
         decompositions=dec,
     )  # fmt: skip
     hand = Hand(scene, gains)
-    X_EW = np.linalg.inv(X_WE)
-    rec_t: list[float] = []
-    rec_X: list[FloatArray] = []
-    every = max(1, round(SAMPLE_PERIOD / scene.params.timestep))
-    counter = [0]
-
-    def sample(h: Hand) -> None:
-        counter[0] += 1
-        if counter[0] % every == 0:
-            rec_t.append(h.time)
-            rec_X.append(X_EW @ h.pose())
-            if video is not None:
-                video.capture(scene)
-
+    rec = _Recorder(scene, video)
     wall = time.perf_counter()
-    if playback:
-        times, poses = frames if frames is not None else _state_poses(task)
-        runs = run_playback(hand, times, poses, scene.com_G, sample)
-        mode = "playback"
-    else:
-        if program is None:
-            from apo.motion import plan
-
-            program = plan(task)
-        runs = run_program(hand, program, sample)
-        mode = "skills"
+    runs, mode = _execute(hand, task, program, playback, frames, rec)
     wall = time.perf_counter() - wall
-    if not rec_t or hand.time > rec_t[-1]:
-        rec_t.append(hand.time)
-        rec_X.append(X_EW @ hand.pose())
-    T, X = np.asarray(rec_t), np.stack(rec_X)
-    threshold = max(task.threshold, 3.0 * clearance)
-    finder = ContactFinder(grasped, environment, threshold=threshold)
-    ids = state_ids(finder, task)
-    visits, final_key = _visits(finder, ids, T, X)
-    final_id = ids.get(final_key)
-    goal = task.states[-1].id
-    success = final_id == goal
-    failed = [r for r in runs if not r.ok]
-    why = (
-        ""
-        if not failed
-        else f"; primitive {failed[0].index} ({failed[0].kind}) {failed[0].outcome}"
-    )
-    verdict = (
-        f"{'SUCCESS' if success else 'FAILURE'}: final contact state "
-        f"{final_id or 'not in the task'} ({len(final_key)} elements), task's final state {goal}"
-        f"{why}"
-    )
+    T, X = rec.finish(hand)
+    j = judge(task, grasped, environment, T, X, clearance=clearance, symmetric=symmetric)
     return ReplayResult(
-        success=success,
-        mode=mode,
-        final_X_EG=X[-1],
-        final_state=final_id,
-        states_reached=_reached(visits),
-        visits=visits,
-        task_states=[s.id for s in task.states],
-        max_force=hand.max_force,
-        max_penetration=hand.max_penetration,
-        primitives=runs,
-        sim_time=hand.time,
-        wall_time=wall,
-        times=T,
-        X_EG=X,
-        verdict=verdict,
+        success=j.success, mode=mode, final_X_EG=X[-1], final_state=j.final_state,
+        states_reached=j.states_reached, visits=j.visits,
+        task_states=[s.id for s in task.states], max_force=hand.max_force,
+        max_penetration=hand.max_penetration, primitives=runs, sim_time=hand.time,
+        wall_time=wall, times=T, X_EG=X, verdict=_verdict(j, task.states[-1].id, runs),
+        by_symmetry=j.by_symmetry,
         settings={
             "perturb": [perturb[0], perturb[1]],
             "environment_offset": [environment_offset[0], environment_offset[1]],
-            "X_WE": X_WE,
-            "clearance": clearance,
-            "seed": seed,
-            "threshold": threshold,
-            "contact": scene.params,
-            "gains": hand.gains,
+            "X_WE": X_WE, "clearance": clearance, "seed": seed, "threshold": j.threshold,
+            "contact": scene.params, "gains": hand.gains, "symmetric": symmetric,
             "pieces": {k: (v.method, len(v.pieces), v.tolerance) for k, v in dec.items()},
         },
-    )
+    )  # fmt: skip
 
 
 def _state_poses(task: TaskModel) -> tuple[FloatArray, FloatArray]:

@@ -48,7 +48,12 @@ class ContactParameters:
     timestep : float
         Seconds.
     solref : tuple of float
-        ``(timeconst, dampratio)`` of every contact: stiff (4 ms, critically damped).
+        Every contact's reference dynamics. Negative values are MuJoCo's direct form
+        ``(-stiffness, -damping)`` (1/s^2, 1/s; per unit of the contact's effective mass):
+        a penetration is corrected as ``a_ref = -stiffness r - damping v``. The default
+        ``(-6e5, -1e3)`` (natural frequency 775 rad/s, damping ratio 0.65, i.e. a time
+        constant of 1.3 ms) is as stiff as a 1 ms step allows with margin (``docs/sim.md``);
+        the positive form ``(timeconst, dampratio)`` cannot go below two steps.
     solimp : tuple of float
         ``(dmin, dmax, width)``: impedance 0.99 rising to 0.999 within 0.1 mm.
     impratio : float
@@ -60,7 +65,7 @@ class ContactParameters:
     """
 
     timestep: float = 0.001
-    solref: tuple[float, float] = (0.004, 1.0)
+    solref: tuple[float, float] = (0.002, 1.0)
     solimp: tuple[float, float, float] = (0.99, 0.999, 0.0001)
     impratio: float = 10.0
     friction: float = 0.3
