@@ -684,22 +684,6 @@ def _leading_point(X: FloatArray, later: Target, e: FloatArray, band: float) -> 
     return np.asarray(pts[s >= s.max() - band].mean(axis=0), dtype=float)
 
 
-def _turn_into_line(p: Primitive, e: FloatArray) -> list[FloatArray]:
-    """Torque-free axes of an align: the entrance direction, if the align must align it.
-
-    The turn about the entrance direction (a square peg's yaw over its hole) is the one
-    orientation no contact tells before the object enters: the pressed support fixes the
-    tilts, but the yaw stays where the plan put it, off by the environment's unknown
-    rotation. A square peg of side ``a`` fits a hole of clearance ``c`` per side only
-    within ``a (cos t + sin t) <= a + 2c`` (0.57 deg for 40 mm at 0.2 mm); the benchmark's
-    1 deg offset exceeds it. Torque-free (0 N·m) about that axis, the hole's walls turn the
-    object into line as it dips in during the search.
-    """
-    assert p.alignment is not None
-    R = p.alignment.rotations
-    return [e] if R.shape[0] and float(np.linalg.norm(R @ e)) > 0.5 else []
-
-
 def _with_searches(prims: Sequence[Primitive], pp: PlanParameters) -> list[Primitive]:
     """Give each ``align`` its search for the entrance and the compliance that feels for it.
 
@@ -735,9 +719,9 @@ def _with_searches(prims: Sequence[Primitive], pp: PlanParameters) -> list[Primi
             p,
             alignment=replace(p.alignment, search=search),
             stop=replace(p.stop, until=("entrance",)),
-            compliance=_Split(
-                force_rows=[e], force=pp.hold_force * e, torque_rows=_turn_into_line(p, e)
-            ).compliance(p.compliance.center if lead is None else lead),
+            compliance=_Split(force_rows=[e], force=pp.hold_force * e).compliance(
+                p.compliance.center if lead is None else lead
+            ),
         )
     return out
 
