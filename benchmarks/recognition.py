@@ -25,6 +25,7 @@ Run ``.venv/bin/python benchmarks/recognition.py [--seeds 50] [--quick] [--sigma
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -291,7 +292,12 @@ def exact_result(demo: Any, task: Any) -> bool:
 
 
 def _demos(seed: int) -> dict[str, Any]:
-    """The four scripted demonstrations, and one random variant (a new one per seed)."""
+    """The four scripted demonstrations, and one random variant (a new one per seed).
+
+    The random variant (``apo.synthetic.random_variant``) is one of the four kinds or a
+    random prism tipped over, with random sizes and proportions, frame count, frame rate
+    (10-60 frames/s), approach angle, margin and placement.
+    """
     from apo import synthetic
 
     out = dict(synthetic.all_demos())
@@ -299,33 +305,65 @@ def _demos(seed: int) -> dict[str, Any]:
     return out
 
 
-def bench_accuracy(seeds: int, sigmas: tuple[float, ...], kinds: tuple[str, ...]) -> dict[str, Any]:
-    """Share of runs recognised exactly, per demonstration, noise kind and level."""
+#: Frame-rate bands (frames/s) of the random variants, reported separately.
+FPS_BANDS = ((10.0, 20.0), (20.0, 40.0), (40.0, 60.0))
+
+
+def _fps_band(demo: Any) -> str:
+    fps = float(demo.meta["fps"])
+    for lo, hi in FPS_BANDS:
+        if lo <= fps < hi or fps == hi == FPS_BANDS[-1][1]:
+            return f"{lo:g}-{hi:g}"
+    return "other"
+
+
+def _accuracy_row(kind: str, sigma: float, seeds: int) -> dict[str, Any]:
+    """Runs of one noise kind and level over ``seeds`` seeds: shares recognised exactly."""
     from apo.recognition import recognize_frames
 
+    ok: dict[str, int] = {}
+    runs: dict[str, int] = {}
+    shapes: dict[str, list[int]] = {}
+    bands: dict[str, list[int]] = {}
+    secs: list[float] = []
+    for seed in range(seeds):
+        for name, demo in _demos(seed).items():
+            noisy = _noisy(demo, kind, sigma, seed)
+            t0 = time.perf_counter()
+            rec = recognize_frames(noisy.grasped, noisy.environment, noisy.times, noisy.X_EG)
+            secs.append(time.perf_counter() - t0)
+            good = exact_result(noisy, rec.task)
+            ok[name] = ok.get(name, 0) + good
+            runs[name] = runs.get(name, 0) + 1
+            if name == "random variant":
+                variant = demo.meta["variant"]["name"]
+                shapes.setdefault(variant, [0, 0])[0] += good
+                shapes[variant][1] += 1
+                band = bands.setdefault(_fps_band(demo), [0, 0])
+                band[0] += good
+                band[1] += 1
+    total = sum(ok.values()) / sum(runs.values())
+    return {
+        "kind": kind, "sigma": sigma, "runs_per_demo": seeds, "runs": sum(runs.values()),
+        "exact": {k: v / runs[k] for k, v in ok.items()}, "exact_all": total,
+        "random_by_kind": {k: {"exact": a / n, "runs": n} for k, (a, n) in sorted(shapes.items())},
+        "random_by_fps": {k: {"exact": a / n, "runs": n} for k, (a, n) in sorted(bands.items())},
+        "seconds_per_run": float(np.mean(secs)),
+    }  # fmt: skip
+
+
+def bench_accuracy(
+    seeds: int, sigmas: tuple[float, ...], kinds: tuple[str, ...], levels: dict[str, Any]
+) -> dict[str, Any]:
+    """Share of runs recognised exactly, per demonstration, noise kind and level."""
     rows = []
     for kind in kinds:
-        for sigma in sigmas:
-            ok: dict[str, int] = {}
-            secs: list[float] = []
-            for seed in range(seeds):
-                for name, demo in _demos(seed).items():
-                    noisy = _noisy(demo, kind, sigma, seed)
-                    t0 = time.perf_counter()
-                    rec = recognize_frames(
-                        noisy.grasped, noisy.environment, noisy.times, noisy.X_EG
-                    )
-                    secs.append(time.perf_counter() - t0)
-                    ok[name] = ok.get(name, 0) + exact_result(noisy, rec.task)
-            total = sum(ok.values()) / (seeds * len(ok))
-            rows.append(
-                {"kind": kind, "sigma": sigma, "runs_per_demo": seeds,
-                 "exact": {k: v / seeds for k, v in ok.items()}, "exact_all": total,
-                 "seconds_per_run": float(np.mean(secs))}
-            )  # fmt: skip
+        for sigma in levels.get(kind, sigmas):
+            row = _accuracy_row(kind, sigma, seeds)
+            rows.append(row)
             print(
-                f"  {kind:<9} sigma {sigma:>3}: exact {total:6.1%}  "
-                + "  ".join(f"{k[:10]} {v / seeds:.0%}" for k, v in ok.items()),
+                f"  {kind:<9} sigma {sigma:>3}: exact {row['exact_all']:6.1%}  "
+                + "  ".join(f"{k[:10]} {v:.0%}" for k, v in row["exact"].items()),
                 flush=True,
             )
     return {"accuracy": rows}
@@ -347,6 +385,11 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="5 seeds, 1 repeat")
     ap.add_argument("--sigmas", default=",".join(str(v) for v in SIGMAS))
     ap.add_argument("--kinds", default=",".join(NOISE_KINDS))
+    ap.add_argument(
+        "--levels",
+        default="",
+        help="per-kind levels overriding --sigmas, e.g. 'drift=1,2;outliers=1'",
+    )
     ap.add_argument("--runs", type=int, default=5, help="fresh-process runs (median)")
     ap.add_argument("--only", default="", help="whole process: comma list of case labels")
     ap.add_argument("--skip", default="", help="comma list of: speed,whole,accuracy")
@@ -374,7 +417,11 @@ def main() -> int:
         _section(res, "synthetic speed", lambda: bench_synthetic_speed(repeat))
     if "accuracy" not in skip:
         print(f"accuracy over {seeds} seeds per noise level (exact states, Fig. 25, sub-skills):")
-        _section(res, "accuracy", lambda: bench_accuracy(seeds, sigmas, kinds))
+        levels = {
+            k: tuple(float(v) for v in vals.split(","))
+            for k, vals in (item.split("=") for item in args.levels.split(";") if item)
+        }
+        _section(res, "accuracy", lambda: bench_accuracy(seeds, sigmas, kinds, levels))
 
     print()
     print("speed (whole recognition, best of", repeat, "runs)")
@@ -397,11 +444,20 @@ def main() -> int:
                     f" {r['peak_mb']:>5.0f} {r['cpp_s']:>6}"
                 )
     print()
-    print(f"  {'noise':<9} {'sigma mm/deg':>12} {'exact (all demos)':>18}")
+    print(
+        f"  {'noise':<9} {'sigma mm/deg':>12} {'runs':>5} {'exact (all demos)':>18}  random by fps"
+    )
     for r in res.get("accuracy", []):
-        print(f"  {r['kind']:<9} {r['sigma']:>12} {r['exact_all']:>18.1%}")
+        fps = "  ".join(f"{k} {v['exact']:.0%}" for k, v in r.get("random_by_fps", {}).items())
+        print(
+            f"  {r['kind']:<9} {r['sigma']:>12} {r.get('runs', 0):>5} {r['exact_all']:>18.1%}  "
+            + fps
+        )
     out = ROOT / "benchmarks" / "results" / "recognition.json"
     out.parent.mkdir(parents=True, exist_ok=True)
+    if out.exists():  # keep the sections of an earlier run that this one skipped
+        with contextlib.suppress(ValueError):
+            res = {**json.loads(out.read_text(encoding="utf-8")), **res}
     out.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
     print(f"wrote {out}")
     return 0

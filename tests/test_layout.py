@@ -167,7 +167,6 @@ LONG_FUNCTIONS_ALLOWED: dict[str, str] = {
     # split pending (session 2): each owner removes its entry when it splits the function.
     "perception.track.track_frames": "perception: split pending",
     "sim.replay.replay": "simdyn: split pending",
-    "synthetic.peg_in_hole_2d": "accuracy: split pending",
 }
 
 

@@ -12,12 +12,14 @@ from apo.contact import ContactFinder, contact_points, element_residuals
 from apo.dof import DofResult, analyze
 from apo.geometry import Polyhedron, point_face_distance
 from apo.synthetic import (
+    VARIANTS,
     SyntheticDemo,
     add_noise,
     block_on_table_to_corner,
     block_tipping,
     corner_tray,
     peg_in_hole_2d,
+    random_variant,
     square_peg_in_hole,
 )
 
@@ -27,6 +29,14 @@ BUILDERS: dict[str, Callable[[], SyntheticDemo]] = {
     "block_on_table_to_corner": block_on_table_to_corner,
     "block_tipping": block_tipping,
 }
+# Random variants: sizes, proportions, shapes (random prisms), speeds, placements.
+BUILDERS.update(
+    {
+        f"{key}#{seed}": (lambda key=key, seed=seed: random_variant(seed, name=key))
+        for key in VARIANTS
+        for seed in (0, 1)
+    }
+)
 _CACHE: dict[str, SyntheticDemo] = {}
 
 

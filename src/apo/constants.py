@@ -50,6 +50,10 @@ class Tolerances:
     correction_rcond : float
         Rank cut of the correction's SVD step: singular values below ``rcond * s_max`` of
         the scaled (dimensionless, O(1)) Jacobian are treated as zero.
+    slide_motion_rotation, slide_motion_translation : float
+        Smallest demonstrated motion along a slide's direction between the two states'
+        poses (rad about the axis; m of the contact centroid) that fixes the slide's sign
+        (``apo.transitions``; ``docs/recognition.md``).
 
     Numerically zero (rounding of order-1 numbers, not a physical size):
 
@@ -168,6 +172,8 @@ class Tolerances:
     threshold_fraction: float = 1e-3
     observed_threshold_fraction: float = 0.035
     subskill_direction: float = 1e-9
+    slide_motion_rotation: float = 0.0349065850398866  # 2 degrees
+    slide_motion_translation: float = 0.002
     twist_axis_match: float = 1e-6
     json_quaternion_norm: float = 1e-6
     json_unit_norm: float = 1e-4

@@ -411,7 +411,16 @@ def _solve_lp(
     h.passModel(lp)
     h.run()
     if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
-        return None
+        # The fast settings of _highs (primal simplex, no presolve) can stop short on an LP
+        # with free variables (seen on a noisy square-peg state: "maximal-support LP
+        # failed"); a fresh instance with HiGHS's defaults solves it.
+        h = _quiet_highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("primal_feasibility_tolerance", feasibility)
+        h.passModel(lp)
+        h.run()
+        if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
+            return None
     return np.asarray(h.getSolution().col_value, dtype=np.float64)
 
 

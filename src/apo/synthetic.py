@@ -33,7 +33,14 @@ import numpy.typing as npt
 
 from apo.contact import ContactFinder, Feature
 from apo.geometry import Polyhedron, polyhedron_from_triangles
-from apo.shapes import block_with_square_hole, box, t_peg, triangles_from_polygons, u_block
+from apo.shapes import (
+    block_with_square_hole,
+    box,
+    prism,
+    t_peg,
+    triangles_from_polygons,
+    u_block,
+)
 from apo.spatial import matrix_from_axis_angle
 from apo.typing import BoolArray, FloatArray, IntArray
 
@@ -333,14 +340,19 @@ def peg_in_hole_2d(
     fps: float = 10.0,
     tilt_deg: float = 25.0,
     margin: float = 0.002,
+    scale: float = 1.0,
+    depth: float = 0.070,
+    thickness: float = 0.035,
 ) -> SyntheticDemo:
     """T-peg inserted into a U-slot in a vertical plane (paper Fig. 21, states A-H of Fig. 25).
 
-    Geometry: ``apo.shapes.t_peg()`` (stem 35 x 70 mm, crossbar 70 x 18 mm, 35 mm thick) into
-    ``apo.shapes.u_block(slot_depth=0.070)`` (140 x 88 x 35 mm, slot 35 mm wide, floor at
-    y = 18 mm); no clearance, as in the first author's models. Motion in the xy-plane
-    (y up), rotation about z; the peg is tilted counter-clockwise so that its bottom-left
-    edge is lowest.
+    Geometry (defaults): ``apo.shapes.t_peg()`` (stem 35 x 70 mm, crossbar 70 x 18 mm, 35 mm
+    thick) into ``apo.shapes.u_block(slot_depth=0.070)`` (140 x 88 x 35 mm, slot 35 mm
+    wide, floor at y = 18 mm); no clearance, as in the first author's models. Motion in the
+    xy-plane (y up), rotation about z; the peg is tilted counter-clockwise so that its
+    bottom-left edge is lowest. ``scale`` multiplies every length in the plane of the motion
+    (and the motion), ``depth`` is the stem's length and the slot's depth before scaling,
+    ``thickness`` the extent of both parts along z (not scaled).
 
     States: A free approach; B the peg's bottom-left edge on the top face right of the slot;
     C that edge on the slot's right rim edge (singular, 2 frames); D pivoted over the rim so
@@ -360,6 +372,12 @@ def peg_in_hole_2d(
     margin : float
         Smallest gap (metres) kept between features that are not scripted to touch, at every
         frame: approach and leave the contacts no closer than this.
+    scale : float
+        Size of the scene in the plane of the motion, relative to the paper's (0.8 to 2).
+    depth : float
+        Stem length = slot depth before scaling, metres (0.045 to 0.080).
+    thickness : float
+        Thickness of the peg and the block along z, metres (0.01 to 0.1).
 
     Returns
     -------
@@ -367,14 +385,31 @@ def peg_in_hole_2d(
     """
     name = "peg_in_hole_2d"
     margin = _check_margin(margin, name, 0.004)
-    if not 10.0 <= tilt_deg <= 27.0:
-        raise ValueError(f"{name}: tilt_deg must be in [10, 27], got {tilt_deg}")
-    G = t_peg()
-    E = u_block(slot_depth=0.070)
-    s, H, floor, w = 0.0175, 0.088, 0.018, 0.035  # half slot, top, slot floor, slot width
+    for label, v, lo, hi in (("tilt_deg", tilt_deg, 10.0, 27.0), ("scale", scale, 0.8, 2.0),
+                             ("depth", depth, 0.045, 0.080),
+                             ("thickness", thickness, 0.01, 0.1)):  # fmt: skip
+        if not lo <= v <= hi:
+            raise ValueError(f"{name}: {label} must be in [{lo:g}, {hi:g}], got {v}")
+    k = float(scale)
+    G = t_peg(stem_width=0.035 * k, stem_length=depth * k, bar_width=0.070 * k,
+              bar_height=0.018 * k, thickness=thickness)  # fmt: skip
+    E = u_block(width=0.14 * k, height=0.088 * k, thickness=thickness, slot_width=0.035 * k,
+                slot_depth=depth * k)  # fmt: skip
+    phases = _peg_2d_phases(math.radians(tilt_deg), margin, k, depth * k)
+    return _build(
+        name, G, E, _PEG_2D_STATES, phases, _PEG_2D_TRANSITIONS, n_frames=n_frames, fps=fps,
+        margin=margin,
+        params={"tilt_deg": tilt_deg, "scale": k, "depth": depth, "thickness": thickness,
+                "peg": "t_peg()", "block": "u_block(slot_depth=0.070)"},
+    )  # fmt: skip
+
+
+def _peg_2d_phases(th0: float, margin: float, k: float, depth: float) -> list[_Phase]:
+    """Return the eight phases of :func:`peg_in_hole_2d` (tilt ``th0`` rad, scene scale ``k``)."""
+    s, H, w = 0.0175 * k, 0.088 * k, 0.035 * k  # half slot, top, slot width
+    floor = H - depth  # slot floor
     corner_G = np.array([-s, 0.0, 0.0])  # the peg's bottom-left edge (at z = 0)
     rim_R = np.array([s, H])
-    th0 = math.radians(tilt_deg)
     th_c = th0 + math.radians(3.0)
     th1 = math.radians(50.0)  # D ends / E starts
     th_e = math.radians(30.0)  # E ends (the bottom-right edge stays >= 2.3 mm off the top)
@@ -392,10 +427,10 @@ def peg_in_hole_2d(
         # Corner on the circle with diameter rim_L-rim_R (Thales): faces on both rims.
         return at(theta, np.array([-s * math.cos(2 * theta), H - s * math.sin(2 * theta)]))
 
-    x_b0 = 0.045
-    phases = [
-        _Phase("approach", 0, lambda u: at(th0, np.array([_lerp(0.065, x_b0, u),
-                                                         H + _lerp(0.06, margin, u)])), 3.0),
+    x_b0 = 0.045 * k
+    return [
+        _Phase("approach", 0, lambda u: at(th0, np.array([_lerp(0.065 * k, x_b0, u),
+                                                         H + _lerp(0.06 * k, margin, u)])), 3.0),
         _Phase("touch and slide to the rim", 1,
                lambda u: at(th0, np.array([_lerp(x_b0, s + margin, u), H])), 3.0),
         _Phase("edge on the rim edge", 2, lambda u: at(_lerp(th0, th_c, u), rim_R), frames=2),
@@ -410,66 +445,65 @@ def peg_in_hole_2d(
                lambda u: at(0.0, np.array([-s, _lerp(H - margin, floor + margin, u)])), 3.0),
         _Phase("seated", 7, lambda u: at(0.0, np.array([-s, floor])), 2.0),
     ]  # fmt: skip
-    states = [
-        TrueState("A", "free", {}, False, (3, 0, 0, 3, 0, 0, 0, 0),
-                  "nothing touches: every motion maintains, nothing restrains"),
-        TrueState("B", "peg's bottom-left edge on the block's top face (right of the slot)",
-                  {"VE": 2}, False, (2, 1, 0, 2, 1, 0, 1, 1),
-                  "line contact, normal +y; the edge's ends lie on the top face's front/back "
-                  "edges with flush faces (VE, one normal): slide x, z, turn about y and the "
-                  "edge (M), lift (D), tip about x either way (type I)"),
-        TrueState("C", "peg's bottom-left edge on the slot's right rim edge", {"VV": 2}, True,
-                  (3, 0, 0, 3, 0, 0, 2, 2),
-                  "parallel convex edges with coincident ends: two VV, normals +y and the "
-                  "peg's bottom normal reversed; singular, nothing regular left (SM = 3); "
-                  "two normals at two points along z restrain 2 + 2"),
-        TrueState("D", "slot's right rim edge on the peg's bottom face, corner in the slot",
-                  {"EV": 2}, False, (2, 1, 0, 2, 1, 0, 1, 1),
-                  "line contact again (rim edge on a face, ends flush: EV), normal = the "
-                  "peg's bottom normal reversed: same numbers as B"),
-        TrueState("E", "also the left rim edge on the peg's left face (wedged)", {"EV": 4},
-                  False, (1, 2, 0, 1, 2, 0, 2, 2),
-                  "two line contacts with normals in the xy-plane, not opposite: slide z (M), "
-                  "2 D; in-plane 3 - 2 = 1 rotation kept (about z, with a translation), tip "
-                  "about x, y either way (type I)"),
-        TrueState("F", "upright, both bottom edges on both rim edges", {"VV": 4}, True,
-                  (3, 0, 0, 3, 0, 0, 2, 3),
-                  "two parallel-edge contacts, ends coincident: 4 VV with normals {+x, +y} "
-                  "and {-x, +y}: singular, SM = 3; normals span the xy-plane (r_t = 2), the "
-                  "4 points spread in x and z give r_a = 5, r_r = 3"),
-        TrueState("G", "upright in the slot, stem faces flush with both walls",
-                  {"VE": 4, "EV": 4}, False, (2, 0, 1, 1, 0, 2, 1, 2),
-                  "normals +x and -x at four (y, z) points: y, z slide (M), x constrained; "
-                  "only rotation about x keeps the faces flush (M), about y, z constrained"),
-        TrueState("H", "seated: stem on the slot floor, crossbar on the top faces",
-                  {"VE": 12, "EV": 8}, False, (1, 1, 1, 0, 1, 2, 2, 3),
-                  "G plus +y contacts: z slides (M), lift (D), x constrained; tipping about x "
-                  "lifts either way (type I D), about y, z constrained"),
-    ]  # fmt: skip
-    transitions = [
-        ExpectedTransition(0, 1, (PUSH_T, PUSH_R1), False,
-                           "t: M->D (3,0,0)->(2,1,0); r: M->D with d_r1 0->1: push-to, type I"),
-        ExpectedTransition(1, 2, (SLIDE_T, SLIDE_R), False,
-                           "t, r: M->SM x2 (+ D->SM) with r_t 1->2 and r_r 1->2: slide in both"),
-        ExpectedTransition(2, 3, (), False,
-                           "SM->M x2 and SM->D: no sub-skill (part of the next motion); "
-                           "no SM->C: not critical"),
-        ExpectedTransition(3, 4, (PUSH_T, PUSH_R1), False,
-                           "t: M->D (2,1,0)->(1,2,0); r: M->D with d_r1 1->2: push-to, type I"),
-        ExpectedTransition(4, 5, (SLIDE_R,), False,
-                           "M->SM (+ D->SM x2) in both spaces, but only r_r grows (2->3, r_t "
-                           "stays 2): rotational slide only"),
-        ExpectedTransition(5, 6, (), True,
-                           "t: SM->C once (x), SM->M twice; r: SM->C twice (y, z), SM->M "
-                           "once: critical, no sub-skill"),
-        ExpectedTransition(6, 7, (PUSH_T, PUSH_R1), False,
-                           "t: M->D (2,0,1)->(1,1,1); r: M->D (1,0,2)->(0,1,2), d_r1 0->1: "
-                           "push-to, type I"),
-    ]  # fmt: skip
-    return _build(
-        name, G, E, states, phases, transitions, n_frames=n_frames, fps=fps, margin=margin,
-        params={"tilt_deg": tilt_deg, "peg": "t_peg()", "block": "u_block(slot_depth=0.070)"},
-    )  # fmt: skip
+
+
+_PEG_2D_STATES = (
+    TrueState("A", "free", {}, False, (3, 0, 0, 3, 0, 0, 0, 0),
+              "nothing touches: every motion maintains, nothing restrains"),
+    TrueState("B", "peg's bottom-left edge on the block's top face (right of the slot)",
+              {"VE": 2}, False, (2, 1, 0, 2, 1, 0, 1, 1),
+              "line contact, normal +y; the edge's ends lie on the top face's front/back "
+              "edges with flush faces (VE, one normal): slide x, z, turn about y and the "
+              "edge (M), lift (D), tip about x either way (type I)"),
+    TrueState("C", "peg's bottom-left edge on the slot's right rim edge", {"VV": 2}, True,
+              (3, 0, 0, 3, 0, 0, 2, 2),
+              "parallel convex edges with coincident ends: two VV, normals +y and the "
+              "peg's bottom normal reversed; singular, nothing regular left (SM = 3); "
+              "two normals at two points along z restrain 2 + 2"),
+    TrueState("D", "slot's right rim edge on the peg's bottom face, corner in the slot",
+              {"EV": 2}, False, (2, 1, 0, 2, 1, 0, 1, 1),
+              "line contact again (rim edge on a face, ends flush: EV), normal = the "
+              "peg's bottom normal reversed: same numbers as B"),
+    TrueState("E", "also the left rim edge on the peg's left face (wedged)", {"EV": 4},
+              False, (1, 2, 0, 1, 2, 0, 2, 2),
+              "two line contacts with normals in the xy-plane, not opposite: slide z (M), "
+              "2 D; in-plane 3 - 2 = 1 rotation kept (about z, with a translation), tip "
+              "about x, y either way (type I)"),
+    TrueState("F", "upright, both bottom edges on both rim edges", {"VV": 4}, True,
+              (3, 0, 0, 3, 0, 0, 2, 3),
+              "two parallel-edge contacts, ends coincident: 4 VV with normals {+x, +y} "
+              "and {-x, +y}: singular, SM = 3; normals span the xy-plane (r_t = 2), the "
+              "4 points spread in x and z give r_a = 5, r_r = 3"),
+    TrueState("G", "upright in the slot, stem faces flush with both walls",
+              {"VE": 4, "EV": 4}, False, (2, 0, 1, 1, 0, 2, 1, 2),
+              "normals +x and -x at four (y, z) points: y, z slide (M), x constrained; "
+              "only rotation about x keeps the faces flush (M), about y, z constrained"),
+    TrueState("H", "seated: stem on the slot floor, crossbar on the top faces",
+              {"VE": 12, "EV": 8}, False, (1, 1, 1, 0, 1, 2, 2, 3),
+              "G plus +y contacts: z slides (M), lift (D), x constrained; tipping about x "
+              "lifts either way (type I D), about y, z constrained"),
+)  # fmt: skip
+
+_PEG_2D_TRANSITIONS = (
+    ExpectedTransition(0, 1, (PUSH_T, PUSH_R1), False,
+                       "t: M->D (3,0,0)->(2,1,0); r: M->D with d_r1 0->1: push-to, type I"),
+    ExpectedTransition(1, 2, (SLIDE_T, SLIDE_R), False,
+                       "t, r: M->SM x2 (+ D->SM) with r_t 1->2 and r_r 1->2: slide in both"),
+    ExpectedTransition(2, 3, (), False,
+                       "SM->M x2 and SM->D: no sub-skill (part of the next motion); "
+                       "no SM->C: not critical"),
+    ExpectedTransition(3, 4, (PUSH_T, PUSH_R1), False,
+                       "t: M->D (2,1,0)->(1,2,0); r: M->D with d_r1 1->2: push-to, type I"),
+    ExpectedTransition(4, 5, (SLIDE_R,), False,
+                       "M->SM (+ D->SM x2) in both spaces, but only r_r grows (2->3, r_t "
+                       "stays 2): rotational slide only"),
+    ExpectedTransition(5, 6, (), True,
+                       "t: SM->C once (x), SM->M twice; r: SM->C twice (y, z), SM->M "
+                       "once: critical, no sub-skill"),
+    ExpectedTransition(6, 7, (PUSH_T, PUSH_R1), False,
+                       "t: M->D (2,0,1)->(1,1,1); r: M->D (1,0,2)->(0,1,2), d_r1 0->1: "
+                       "push-to, type I"),
+)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -483,12 +517,15 @@ def square_peg_in_hole(
     fps: float = 10.0,
     yaw_deg: float = 15.0,
     margin: float = 0.002,
+    scale: float = 1.0,
+    height: float = 0.06,
 ) -> SyntheticDemo:
     """Square peg set down beside a square pocket, lifted, and lowered straight in.
 
     Geometry: peg ``box([0.04, 0.04, 0.06])`` (origin at the centre of its bottom face);
     block ``block_with_square_hole(size=(0.16, 0.16, 0.05), hole=0.04, depth=0.03)`` (top at
-    z = 50 mm, pocket 40 mm square, floor at z = 20 mm); no clearance.
+    z = 50 mm, pocket 40 mm square, floor at z = 20 mm); no clearance. ``scale`` multiplies
+    every length (and the motion), ``height`` is the peg's height before scaling.
 
     States: A free; B the peg's bottom face on the top face beside the pocket (turned by
     ``yaw_deg``, sliding a little); A again (lifted, turned square, moved over the pocket);
@@ -505,6 +542,10 @@ def square_peg_in_hole(
         Turn of the peg about z while it is set down, degrees (5 to 30).
     margin : float
         Smallest gap (metres) kept between features not scripted to touch.
+    scale : float
+        Size of the scene relative to the default (0.6 to 2).
+    height : float
+        Height of the peg before scaling, metres (0.04 to 0.1).
 
     Returns
     -------
@@ -514,9 +555,12 @@ def square_peg_in_hole(
     margin = _check_margin(margin, name, 0.005)
     if not 5.0 <= yaw_deg <= 30.0:
         raise ValueError(f"{name}: yaw_deg must be in [5, 30], got {yaw_deg}")
-    G = box([0.04, 0.04, 0.06], center=[0.0, 0.0, 0.03], name="square_peg")
-    E = block_with_square_hole(size=(0.16, 0.16, 0.05), hole=0.04, depth=0.03)
-    top, floor = 0.05, 0.02
+    if not (0.6 <= scale <= 2.0 and 0.04 <= height <= 0.1):
+        raise ValueError(f"{name}: need scale in [0.6, 2] and height in [0.04, 0.1] m")
+    k = float(scale)
+    G = box([0.04 * k, 0.04 * k, height * k], center=[0.0, 0.0, height * k / 2], name="square_peg")
+    E = block_with_square_hole(size=(0.16 * k, 0.16 * k, 0.05 * k), hole=0.04 * k, depth=0.03 * k)
+    top, floor = 0.05 * k, 0.02 * k
     yaw = math.radians(yaw_deg)
 
     def at(psi: float, x: float, y: float, z: float) -> FloatArray:
@@ -524,16 +568,17 @@ def square_peg_in_hole(
 
     # Footprint half-extent 20 (cos + sin) <= 24.5 mm for yaw <= 15 deg: at x = 50 mm the
     # peg stays >= 5.5 mm off the rim (x = 20 mm) and the block's edge (x = 80 mm).
-    x_b, y_b = 0.05, -0.01
+    x_b, y_b = 0.05 * k, -0.01 * k
 
     def lift(u: float) -> FloatArray:
         # Up, over and down: z peaks 40 mm above the top; x, y go to 0, yaw to 0.
-        z = top + margin + 0.04 * math.sin(math.pi * u)
+        z = top + margin + 0.04 * k * math.sin(math.pi * u)
         return at(_lerp(yaw - math.radians(3.0), 0.0, u), _lerp(x_b, 0.0, u),
                   _lerp(y_b, 0.0, u), z)  # fmt: skip
 
     phases = [
-        _Phase("approach", 0, lambda u: at(yaw, x_b, 0.0, top + _lerp(0.05, margin, u)), 2.0),
+        _Phase("approach", 0, lambda u: at(yaw, x_b, 0.0, top + _lerp(0.05 * k, margin, u)),
+               2.0),
         _Phase("set down and slide", 1,
                lambda u: at(_lerp(yaw, yaw - math.radians(3.0), u), x_b,
                             _lerp(0.0, y_b, u), top), 2.0),
@@ -582,7 +627,8 @@ def square_peg_in_hole(
     ]  # fmt: skip
     return _build(
         name, G, E, states, phases, transitions, n_frames=n_frames, fps=fps, margin=margin,
-        params={"yaw_deg": yaw_deg, "peg": "box([0.04, 0.04, 0.06])",
+        params={"yaw_deg": yaw_deg, "scale": k, "height": height,
+                "peg": "box([0.04, 0.04, 0.06])",
                 "block": "block_with_square_hole(size=(0.16, 0.16, 0.05))"},
     )  # fmt: skip
 
@@ -661,6 +707,7 @@ def block_on_table_to_corner(
     fps: float = 10.0,
     yaw_deg: float = 20.0,
     margin: float = 0.002,
+    size: Sequence[float] = (0.06, 0.04, 0.03),
 ) -> SyntheticDemo:
     """Block lowered onto a floor, slid against a wall, then along it into the corner.
 
@@ -682,6 +729,9 @@ def block_on_table_to_corner(
         Turn of the block about z during the approach, degrees (0 to 45).
     margin : float
         Smallest gap (metres) kept between features not scripted to touch.
+    size : sequence of 3 float
+        The block's extents along x, y, z, metres (x 0.02 to 0.08, y 0.02 to 0.06, z 0.01
+        to 0.05).
 
     Returns
     -------
@@ -691,9 +741,12 @@ def block_on_table_to_corner(
     margin = _check_margin(margin, name, 0.01)
     if not 0.0 <= yaw_deg <= 45.0:
         raise ValueError(f"{name}: yaw_deg must be in [0, 45], got {yaw_deg}")
-    G = box([0.06, 0.04, 0.03], center=[0.0, 0.0, 0.015], name="block")
+    lx, ly, lz = (float(v) for v in size)
+    if not (0.02 <= lx <= 0.08 and 0.02 <= ly <= 0.06 and 0.01 <= lz <= 0.05):
+        raise ValueError(f"{name}: size {tuple(size)} is outside [0.02-0.08, 0.02-0.06, 0.01-0.05]")
+    G = box([lx, ly, lz], center=[0.0, 0.0, lz / 2], name="block")
     E = corner_tray()
-    fl, wl, hx, hy = 0.02, 0.02, 0.03, 0.02
+    fl, wl, hx, hy = 0.02, 0.02, lx / 2, ly / 2
     yaw = math.radians(yaw_deg)
 
     def at(psi: float, x: float, y: float, z: float) -> FloatArray:
@@ -736,7 +789,7 @@ def block_on_table_to_corner(
     ]  # fmt: skip
     return _build(
         name, G, E, states, phases, transitions, n_frames=n_frames, fps=fps, margin=margin,
-        params={"yaw_deg": yaw_deg, "block": "box([0.06, 0.04, 0.03])",
+        params={"yaw_deg": yaw_deg, "block": f"box({[lx, ly, lz]})",
                 "environment": "corner_tray()"},
     )  # fmt: skip
 
@@ -746,12 +799,37 @@ def block_on_table_to_corner(
 # --------------------------------------------------------------------------------------------
 
 
+def _tipping_block(
+    footprint: npt.ArrayLike | None, height: float
+) -> tuple[Polyhedron, FloatArray, float]:
+    """Return the block of :func:`block_tipping` and its tipping edge.
+
+    Returns the block, the midpoint of its tipping edge, and the distance of the nearest
+    other bottom vertex from that edge (metres).
+    """
+    if footprint is None:
+        G = box([0.06, 0.04, 0.03], center=[0.0, 0.0, 0.015], name="block")
+        return G, np.array([0.03, 0.0, 0.0]), 0.06
+    P = np.asarray(footprint, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 2 or len(P) < 3 or not 0.005 <= height <= 0.2:
+        raise ValueError("block_tipping: footprint must be (n >= 3, 2), height 5 to 200 mm")
+    x_max = float(P[:, 0].max())
+    on_edge = P[:, 0] > x_max - 1e-9
+    if int(on_edge.sum()) != 2:
+        raise ValueError("block_tipping: the footprint's side of largest x must be one edge")
+    G = prism(P, height, name="prism")
+    edge = np.array([x_max, float(P[on_edge, 1].mean()), 0.0])
+    return G, edge, float((x_max - P[~on_edge, 0]).min())
+
+
 def block_tipping(
     n_frames: int = 30,
     *,
     fps: float = 10.0,
     tilt_deg: float = 30.0,
     margin: float = 0.002,
+    footprint: npt.ArrayLike | None = None,
+    height: float = 0.03,
 ) -> SyntheticDemo:
     """Block lowered onto one bottom edge and tipped about it until its face lands.
 
@@ -772,6 +850,13 @@ def block_tipping(
         Initial tilt about the edge, degrees (10 to 60).
     margin : float
         Smallest gap (metres) kept between features not scripted to touch.
+    footprint : array_like, shape (n, 2), optional
+        The block is then a prism (:func:`apo.shapes.prism`) of this convex polygon (metres,
+        in its bottom plane), ``height`` tall; it tips about its side of largest x, which
+        must be an edge parallel to y (two vertices share the largest x). Default: the
+        60 x 40 mm box, 30 mm tall.
+    height : float
+        Height of the prism (with ``footprint``), metres.
 
     Returns
     -------
@@ -781,12 +866,12 @@ def block_tipping(
     margin = _check_margin(margin, name, 0.01)
     if not 10.0 <= tilt_deg <= 60.0:
         raise ValueError(f"{name}: tilt_deg must be in [10, 60], got {tilt_deg}")
-    G = box([0.06, 0.04, 0.03], center=[0.0, 0.0, 0.015], name="block")
+    G, edge_G, near = _tipping_block(footprint, height)
+    n_bottom = 4 if footprint is None else len(np.asarray(footprint))
     E = box([0.4, 0.4, 0.05], center=[0.0, 0.0, -0.025], name="table")
-    edge_G = np.array([0.03, 0.0, 0.0])  # midpoint of the bottom edge along y at x = +30 mm
     phi0 = math.radians(tilt_deg)
-    # Smallest tilt in B: the opposite bottom edge (60 mm away) stays >= 1.5 margin up.
-    phi_min = math.asin(min(1.0, 1.5 * margin / 0.06))
+    # Smallest tilt in B: the nearest other bottom vertex stays >= 1.5 margin up.
+    phi_min = math.asin(min(1.0, 1.5 * margin / near))
     p_edge = np.array([0.02, 0.01, 0.0])
 
     def at(phi: float, z: float) -> FloatArray:
@@ -803,8 +888,10 @@ def block_tipping(
         TrueState("B", "bottom edge on the table", {"VF": 2}, False, (2, 1, 0, 2, 1, 0, 1, 1),
                   "two VF on a line along y, normal +z: slide x, y, turn about z and about "
                   "the edge (M), lift (D), tip about x either way (type I)"),
-        TrueState("C", "bottom face on the table", {"VF": 4}, False, (2, 1, 0, 1, 2, 0, 1, 2),
-                  "4 corners on the plane: turning about the edge (y) now lifts either way"),
+        TrueState("C", "bottom face on the table", {"VF": n_bottom},
+                  False, (2, 1, 0, 1, 2, 0, 1, 2),
+                  "the bottom corners on the plane: turning about the edge (y) now lifts "
+                  "either way"),
     ]  # fmt: skip
     transitions = [
         ExpectedTransition(0, 1, (PUSH_T, PUSH_R1), False,
@@ -815,7 +902,8 @@ def block_tipping(
     ]  # fmt: skip
     return _build(
         name, G, E, states, phases, transitions, n_frames=n_frames, fps=fps, margin=margin,
-        params={"tilt_deg": tilt_deg, "block": "box([0.06, 0.04, 0.03])",
+        params={"tilt_deg": tilt_deg, "block": G.name, "height": height,
+                "footprint": None if footprint is None else np.asarray(footprint).tolist(),
                 "table": "box([0.4, 0.4, 0.05])"},
     )  # fmt: skip
 
@@ -999,12 +1087,45 @@ def add_noise(
 
 #: The scripted demonstrations :func:`random_variant` draws from, with the ranges of their
 #: parameters: frame count (speed), approach angle (tilt or yaw, degrees), stand-off margin.
+#: ``"prism_tipping"`` is :func:`block_tipping` with a random prism for the block.
 VARIANTS: dict[str, tuple[Any, tuple[int, int], str, tuple[float, float]]] = {
     "peg_in_hole_2d": (peg_in_hole_2d, (40, 120), "tilt_deg", (12.0, 27.0)),
     "square_peg_in_hole": (square_peg_in_hole, (35, 110), "yaw_deg", (6.0, 30.0)),
     "block_on_table_to_corner": (block_on_table_to_corner, (30, 90), "yaw_deg", (8.0, 40.0)),
     "block_tipping": (block_tipping, (22, 70), "tilt_deg", (15.0, 50.0)),
+    "prism_tipping": (block_tipping, (22, 70), "tilt_deg", (15.0, 50.0)),
 }
+
+
+def random_footprint(rng: np.random.Generator) -> FloatArray:
+    """Return a random convex polygon (n, 2), 3 to 7 vertices, metres, for :func:`block_tipping`.
+
+    Its vertices lie on an ellipse (semi-axes 25-70 mm along x, 12-35 mm along y) centred
+    at the origin: two at the ends of the ellipse's y-axis (the tipping edge, on x = 0)
+    and 1 to 5 at random angles on its other half, at least 14 mm from that edge.
+    """
+    rx, ry = rng.uniform(0.025, 0.07), rng.uniform(0.012, 0.035)
+    ang = np.sort(rng.uniform(math.radians(125.0), math.radians(235.0), int(rng.integers(1, 6))))
+    # keep neighbouring vertices apart (>= 8 degrees) so that no edge is tiny
+    ang = ang[np.concatenate([[True], np.diff(ang) > math.radians(8.0)])]
+    pts = [(0.0, -ry), (0.0, ry)] + [(rx * math.cos(t), ry * math.sin(t)) for t in ang]
+    out: FloatArray = np.array(pts, dtype=np.float64)
+    return out
+
+
+def _shape_params(key: str, rng: np.random.Generator) -> dict[str, Any]:
+    """Random sizes and proportions of the parts of one of :data:`VARIANTS`."""
+    if key == "peg_in_hole_2d":
+        return {"scale": float(rng.uniform(0.8, 1.6)), "depth": float(rng.uniform(0.05, 0.08)),
+                "thickness": float(rng.uniform(0.015, 0.06))}  # fmt: skip
+    if key == "square_peg_in_hole":
+        return {"scale": float(rng.uniform(0.7, 1.8)), "height": float(rng.uniform(0.045, 0.1))}
+    if key == "block_on_table_to_corner":
+        size = (rng.uniform(0.03, 0.08), rng.uniform(0.02, 0.06), rng.uniform(0.012, 0.05))
+        return {"size": tuple(float(v) for v in size)}
+    if key == "prism_tipping":
+        return {"footprint": random_footprint(rng), "height": float(rng.uniform(0.015, 0.08))}
+    return {}
 
 
 def random_variant(
@@ -1014,9 +1135,12 @@ def random_variant(
 
     Draws (from ``seed``) one of :data:`VARIANTS` (or ``name``), its frame count (the speed
     of the motion), frame rate (10 to 60 frames/s), approach angle (tilt or yaw), stand-off
-    margin (1 to 4 mm), and a random rigid placement of the whole scene (the environment
-    turned about a random axis and moved: the approach direction in the environment's
-    frame changes; contacts, feature ids and the expected states do not).
+    margin (1 to 4 mm), the sizes and proportions of its parts (:func:`_shape_params`: the
+    T-peg's scale, stem length and thickness; the square peg's scale and height; the
+    block's three sides; for ``"prism_tipping"`` a random convex prism,
+    :func:`random_footprint`), and a random rigid placement of the whole scene (the
+    environment turned about a random axis and moved: the approach direction in the
+    environment's frame changes; contacts and the expected states do not).
 
     Returns
     -------
@@ -1028,18 +1152,24 @@ def random_variant(
     if key not in VARIANTS:
         raise ValueError(f"unknown demonstration {key!r}; expected one of {sorted(VARIANTS)}")
     build, (lo, hi), angle_name, (alo, ahi) = VARIANTS[key]
-    params = {
+    params: dict[str, Any] = {
         "n_frames": int(rng.integers(lo, hi + 1)),
         "fps": float(rng.uniform(10.0, 60.0)),
         angle_name: float(rng.uniform(alo, ahi)),
         "margin": float(rng.uniform(0.001, 0.004)),
     }
-    demo: SyntheticDemo = build(**params)
+    shape = _shape_params(key, rng)
+    if "footprint" in shape:  # the tilt must leave room to tip down to phi_min (block_tipping)
+        near = float(-shape["footprint"][2:, 0].max())
+        least = math.degrees(math.asin(min(1.0, 1.5 * params["margin"] / near))) + 8.0
+        params[angle_name] = max(params[angle_name], least)
+    demo: SyntheticDemo = build(**params, **shape)
     axis = _unit_vectors(rng, 1)
     T = np.eye(4)
     T[:3, :3] = _rotvec_matrices(axis * rng.uniform(0.0, math.pi))[0]
     T[:3, 3] = rng.uniform(-0.2, 0.2, size=3)
-    return placed(demo, T, meta={"variant": {"name": key, **params, "placement": T.tolist()}})
+    record = {"name": key, **params, **{k: np.asarray(v).tolist() for k, v in shape.items()}}
+    return placed(demo, T, meta={"variant": {**record, "placement": T.tolist()}})
 
 
 def placed(

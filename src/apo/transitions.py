@@ -840,6 +840,52 @@ def _push_type(ctx: _Ctx, sub: FloatArray) -> str | None:
     return None
 
 
+#: Smallest demonstrated motion along a slide's direction that fixes its sign: the turn
+#: (radians) about a rotational slide's axis, the displacement (metres) of the contact
+#: centroid along a translational slide's direction, between the two states' poses.
+SLIDE_MIN_ROTATION = tol.slide_motion_rotation
+SLIDE_MIN_TRANSLATION = tol.slide_motion_translation
+
+
+def _slide_motion(space: str, direction: FloatArray, ctx: _Ctx) -> float:
+    """Demonstrated motion along a slide's direction between the two states' poses.
+
+    Rotation: the turn (radians) about ``direction``; translation: the displacement
+    (metres) of the after state's contact centroid along it. 0 without both poses.
+    """
+    if ctx.x_before is None or ctx.x_after is None:
+        return 0.0
+    xi = _relative_twist(ctx.x_before, ctx.x_after)
+    if space == "rotation":
+        return float(xi[:3] @ direction)
+    centre = np.zeros(3)
+    if ctx.after_state is not None and ctx.after_state.elements:
+        centre = np.mean([e.point for e in ctx.after_state.elements], axis=0)
+    return float((xi[3:] + np.cross(xi[:3], centre)) @ direction)
+
+
+def _signed_by_motion(
+    space: str, direction: FloatArray | None, source: str, ctx: _Ctx
+) -> tuple[FloatArray | None, str]:
+    """Return a slide's direction with the sign of the demonstrated motion, where clear.
+
+    The contacts fix the sign of a push-to (into the new contact) and of a release (away
+    from the lost one), but not that of a slide: the sliding contact's normals are
+    orthogonal to the motion, and which elements the noise lets appear decides the sign of
+    their sum. A slide goes the way the demonstration went: where the motion along the
+    direction between the two states' poses is at least :data:`SLIDE_MIN_ROTATION` /
+    :data:`SLIDE_MIN_TRANSLATION`, the direction takes its sign (``source`` becomes
+    ``"poses"`` when that reverses it).
+    """
+    if direction is None:
+        return direction, source
+    moved = _slide_motion(space, direction, ctx)
+    least = SLIDE_MIN_ROTATION if space == "rotation" else SLIDE_MIN_TRANSLATION
+    if moved <= -least:
+        return -direction, "poses"
+    return direction, source
+
+
 def _subskills_of_space(
     space: Space, dec: Decomposition, ctx: _Ctx, restraining_grows: bool
 ) -> list[SubSkill]:
@@ -869,6 +915,8 @@ def _subskills_of_space(
             point = None
         else:
             direction, point, source = _rotation_direction(kind, sub, ctx)
+        if kind is SubSkillKind.SLIDE:
+            direction, source = _signed_by_motion(space, direction, source, ctx)
         typ = (
             _push_type(ctx, sub) if (kind is SubSkillKind.PUSH_TO and space == "rotation") else None
         )

@@ -82,7 +82,7 @@ def bridge_pose(
     those, the one with the smallest initial residual; ``(X_EG, frame)`` or None.
     """
     G, E, X = scene.grasped, scene.environment, scene.X
-    reach = scene.costs.reach * scene.theta
+    reach = scene.costs.reach * scene.unit
     union = ContactState(
         elements=meet_elements(G, E, s1.elements, s2.elements),
         touching=s1.touching | s2.touching,

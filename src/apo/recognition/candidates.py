@@ -101,7 +101,7 @@ def analyse_candidate(
     frames = np.flatnonzero(labels == k)
     best = frames[np.argsort(cost[frames], kind="stable")[:tries]]
     Xb, _before, _after, ok = correct_poses(
-        scene.grasped, scene.environment, scene.X[best], observed.elements, threshold=scene.theta
+        scene.grasped, scene.environment, scene.X[best], observed.elements, threshold=scene.unit
     )
     if ok.any():
         i = int(np.argmax(ok))

@@ -69,7 +69,7 @@ def hypotheses(
 
     add(observed.elements)
     for m in RESCUE_SCALES:
-        add(ContactFinder(G, E, threshold=m * scene.theta).find(X_EG).elements)
+        add(ContactFinder(G, E, threshold=m * scene.unit).find(X_EG).elements)
     if len(observed.elements) > 1:
         for i in range(len(observed.elements)):
             add(observed.elements[:i] + observed.elements[i + 1 :])
@@ -152,7 +152,7 @@ def _correct(
         max_iter=CORRECTION_MAX_ITER,
         tol=CORRECTION_TOL,
         max_rotation=RESCUE_MAX_ROTATION,
-        max_displacement=RESCUE_REACH * scene.theta,
+        max_displacement=RESCUE_REACH * scene.unit,
     )
     if not bool(res.converged[0]) or bool(res.flagged[0]):
         return None
@@ -169,6 +169,6 @@ def _explains(scene: Scene, X: FloatArray, observed: ContactState) -> int:
         return 0
     keys = [e.key for e in observed.elements]
     d = element_distances(scene.grasped, scene.environment, X[None], keys)[0]
-    if (d > scene.theta).any():
+    if (d > scene.unit).any():
         return -1
     return int((d <= float(scene.exact.threshold)).sum())

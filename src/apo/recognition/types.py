@@ -97,6 +97,9 @@ class Scene:
     outliers : ndarray of bool, shape (N,)
         Frames whose pose is an outlier (``apo.recognition.noise``): ignored by the
         segmentation (every state explains them equally).
+    scale : float
+        Unit of the costs' distances and of the correction's and rescue's reach (metres;
+        ``unit``); 0: the threshold.
     """
 
     grasped: Polyhedron
@@ -106,6 +109,7 @@ class Scene:
     exact: ContactFinder
     costs: SegmentationCosts
     outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    scale: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.outliers) != len(self.X):
@@ -115,6 +119,16 @@ class Scene:
     def theta(self) -> float:
         """The recognition threshold (metres)."""
         return float(self.finder.threshold)
+
+    @property
+    def unit(self) -> float:
+        """Distance unit of the costs and of the correction's reach (metres).
+
+        The threshold, or the larger ``scale`` when the threshold comes from a small noise
+        (``docs/recognition.md``): a threshold near the noise finds the contacts, but a
+        distance of a few deviations must still look small to the costs.
+        """
+        return max(self.theta, float(self.scale))
 
     @property
     def n(self) -> int:
@@ -193,6 +207,8 @@ class Recognition:
         The pose noise used (estimated from the poses, or given).
     outliers : ndarray of bool, shape (N,)
         Frames taken as outliers (ignored by the segmentation).
+    observed_states : list of ContactState
+        Each distinct observed state as found at its first frame (``observed`` indexes it).
     """
 
     task: TaskModel
@@ -213,6 +229,7 @@ class Recognition:
     X_corrected: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     noise: NoiseEstimate | None = None
     outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    observed_states: list[ContactState] = field(default_factory=list)
 
     @property
     def flags(self) -> list[list[str]]:
