@@ -165,7 +165,6 @@ def test_imports_point_down_the_layers(path: Path) -> None:
 MAX_FUNCTION_LINES = 80
 LONG_FUNCTIONS_ALLOWED: dict[str, str] = {
     # split pending (session 2): each owner removes its entry when it splits the function.
-    "perception.track.track_frames": "perception: split pending",
     "sim.replay.replay": "simdyn: split pending",
 }
 

@@ -71,6 +71,10 @@ def test_track_writes_csv_and_environment(
     assert np.all(data[:, 4] >= 0) and np.all(data[:, 8] > 0.9)
     env = json.loads((root / "out" / "poses.environment.json").read_text())
     assert env["frame"] == "camera" and env["units"] == "mm" and env["lost_frames"] == []
+    # The JSON names its CSV (written first) with its hash: the pair's manifest.
+    from apo.outputs import sha256_file
+
+    assert env["poses"] == {"file": "poses.csv", "sha256": sha256_file(out)}
     assert env["reinitialisations"] == count == len(env["reinitialised_frames"])
     assert [s["angle_deg"] for s in env["symmetries"]["grasped"]] == [0.0, 180.0]
     np.testing.assert_allclose(env["X_CE"][:3], X_CE[:3, 3] * 1e3, atol=0.5)

@@ -61,6 +61,25 @@ def test_background_and_default_times(tmp_path: Path) -> None:
     np.testing.assert_allclose(depth, 0.7, atol=1e-6)
 
 
+def test_several_background_frames_are_combined_by_median(tmp_path: Path) -> None:
+    make_folder(tmp_path, 2)
+    rng = np.random.default_rng(0)
+    frames_bg = [0.7 + rng.normal(0, 0.002, (24, 32)) for _ in range(5)]
+    frames_bg[1][3, 4] = 0.0  # a dropout in one frame does not count
+    frames_bg[2][3, 4] = 0.1  # an outlier in one frame is outvoted
+    write_background(tmp_path, np.zeros((24, 32, 3), np.uint8), *frames_bg[:1], CAM, *frames_bg[1:])
+    frames = open_frames(tmp_path)
+    assert frames.background_count == 5  # type: ignore[attr-defined]
+    _, depth = frames.background()
+    assert depth is not None
+    stack = np.round(np.stack(frames_bg) * 1e3) / 1e3  # 1 mm units
+    expected = np.sort(stack, axis=0)[2]
+    expected[3, 4] = np.sort(stack[[0, 2, 3, 4], 3, 4])[1]  # the lower median of the 4 measured
+    np.testing.assert_allclose(depth, expected, atol=1e-6)
+    # Its noise is well below one frame's.
+    assert np.std(depth - 0.7) < 0.8 * np.std(stack[0] - 0.7)
+
+
 def test_camera_pose_round_trip(tmp_path: Path) -> None:
     X = pose_from_xyz_quat([0.1, -0.2, 0.3, 0.9, 0.1, -0.3, 0.2])
     cam = Camera(1.0, 2.0, 3.0, 4.0, 5, 6, 1e-4, X)

@@ -166,6 +166,10 @@ def write_tracking(
     kept = int(keep.sum())
     lost = [int(i) for i in np.nonzero(result.lost)[0]]
     env = environment_json(result, units)
+    from apo.outputs import sha256_file
+
+    # The JSON is renamed into place after the CSV and names it: it is the pair's manifest.
+    env["poses"] = {"file": shown.name, "sha256": sha256_file(out)}
     (env_out or environment_path(out)).write_text(
         json.dumps(env, indent=2) + "\n", encoding="utf-8"
     )
@@ -255,7 +259,9 @@ def run(args: argparse.Namespace) -> int:
     from apo.outputs import output_files
 
     out = Path(args.out)
-    with output_files([out, environment_path(out)], label="--out") as (csv_tmp, env_tmp):
+    # The environment JSON (which names the CSV and its SHA-256) is renamed last: a pair
+    # interrupted between the two renames is detectable (the hashes disagree).
+    with output_files([environment_path(out), out], label="--out") as (env_tmp, csv_tmp):
         result = track_from_args(args, args.frames, args.grasped, args.environment)
         write_tracking(result, csv_tmp, args.units, env_out=env_tmp, shown=out)
     return 0

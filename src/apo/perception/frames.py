@@ -8,6 +8,7 @@ The layout (``docs/perception.md``) of a frames folder ``FRAMES/``::
     rgb/000001.png ...     frames numbered from 000000 without gaps, six digits
     background/rgb.png     optional: the scene without the two objects
     background/depth.png   optional: its depth (same encoding as depth/)
+    background/depth_000001.png ...  optional: more depth frames of the empty scene
     timestamps.txt         optional: one time in seconds per frame, increasing
 
 Pixel ``(row v, column u)`` has its centre at image coordinates ``(u, v)``; the camera frame
@@ -46,6 +47,7 @@ __all__ = [
     "FrameSource",
     "Frames",
     "camera_from_json",
+    "masked_median",
     "open_frames",
     "read_camera",
     "write_background",
@@ -144,23 +146,57 @@ class Frames:
     def background(
         self,
     ) -> tuple[npt.NDArray[np.uint8] | None, npt.NDArray[np.float32] | None]:
-        """Colour and depth of ``background/``, each None when absent."""
+        """Colour and depth of ``background/``, each None when absent.
+
+        With several background depth frames (``depth.png``, ``depth_000001.png``, ...) the
+        depth is their per-pixel median over the frames that measured it
+        (:attr:`background_count` frames): its noise is about ``sqrt(pi / 2n)`` of one frame's.
+        """
         rgb_path = self.root / "background" / "rgb.png"
-        depth_path = self.root / "background" / "depth.png"
         rgb = (
             np.asarray(_read_png(rgb_path, kind="rgb", camera=self._camera), dtype=np.uint8)
             if rgb_path.exists()
             else None
         )
-        depth = (
-            (
-                _read_png(depth_path, kind="depth", camera=self._camera)
-                * np.float32(self._camera.depth_scale)
-            ).astype(np.float32)
-            if depth_path.exists()
-            else None
-        )
-        return rgb, depth
+        paths = self._background_depth_paths()
+        if not paths:
+            return rgb, None
+        scale = np.float32(self._camera.depth_scale)
+        depths = [
+            (_read_png(p, kind="depth", camera=self._camera) * scale).astype(np.float32)
+            for p in paths
+        ]
+        if len(depths) == 1:
+            return rgb, depths[0]
+        return rgb, masked_median(np.stack(depths), np.stack(depths) > 0)
+
+    def _background_depth_paths(self) -> list[Path]:
+        first = self.root / "background" / "depth.png"
+        if not first.exists():
+            return []
+        paths = [first]
+        while (p := self.root / "background" / f"depth_{len(paths):06d}.png").exists():
+            paths.append(p)
+        return paths
+
+    @property
+    def background_count(self) -> int:
+        """Number of background depth frames (0 without a background)."""
+        return len(self._background_depth_paths())
+
+
+def masked_median(
+    values: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.float32]:
+    """Per-pixel median of ``values`` (N, H, W) over the frames where ``mask``; 0 if none.
+
+    The lower median for an even count (a measured value, not an average of two).
+    """
+    stack = np.sort(np.where(mask, values, np.float32(np.inf)), axis=0)
+    count = mask.sum(axis=0)
+    idx = np.maximum(count - 1, 0) // 2
+    med = np.take_along_axis(stack, idx[None], axis=0)[0]
+    return np.where(count > 0, med, 0.0).astype(np.float32)
 
 
 def open_frames(path: str | Path, *, fps: float = DEFAULT_FPS) -> FrameSource:
@@ -266,12 +302,22 @@ def write_frame(
 
 
 def write_background(
-    root: str | Path, rgb: npt.ArrayLike, depth: npt.ArrayLike, camera: Camera
+    root: str | Path,
+    rgb: npt.ArrayLike,
+    depth: npt.ArrayLike,
+    camera: Camera,
+    *more_depths: npt.ArrayLike,
 ) -> None:
-    """Write ``background/rgb.png`` and ``background/depth.png`` (depth in metres)."""
+    """Write ``background/rgb.png`` and ``background/depth.png`` (depth in metres).
+
+    ``more_depths`` (further frames of the empty scene) go to ``background/depth_000001.png``
+    and on.
+    """
     r = Path(root)
     _write_png(r / "background" / "rgb.png", np.asarray(rgb, dtype=np.uint8))
     _write_png(r / "background" / "depth.png", _depth_to_png(depth, camera))
+    for k, d in enumerate(more_depths, start=1):
+        _write_png(r / "background" / f"depth_{k:06d}.png", _depth_to_png(d, camera))
 
 
 def write_timestamps(root: str | Path, times: npt.ArrayLike) -> None:

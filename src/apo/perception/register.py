@@ -45,12 +45,14 @@ from apo.typing import FloatArray
 __all__ = [
     "ModelCloud",
     "Registration",
+    "SurfaceCheck",
     "free_space_violation",
     "initialise",
     "model_cloud",
     "orthonormalised",
     "penetration",
     "register",
+    "surface_check",
 ]
 
 
@@ -209,10 +211,27 @@ class Registration:
     violation: float
     n_points: int
     penetration: float = 0.0
+    surface: SurfaceCheck | None = None
+
+    @property
+    def quality(self) -> float:
+        """``fitness * (1 - silhouette violation)``: ranks poses of one frame (not a confidence).
+
+        The share of the observed points the pose explains, less the share of its pixels,
+        depth edges included, where the sensor sees past it.
+        """
+        v = self.surface.silhouette_violation if self.surface is not None else self.violation
+        return float(self.fitness * (1.0 - v))
 
     @property
     def confidence(self) -> float:
-        """``fitness * (1 - violation) * (1 - penetration)``, in [0, 1]."""
+        """The share of the predicted-visible model surface the observation explains.
+
+        ``surface.score * (1 - penetration)`` (:class:`SurfaceCheck`) when a depth image was
+        given; without one, ``fitness * (1 - penetration)``. In [0, 1].
+        """
+        if self.surface is not None:
+            return float(self.surface.score * (1.0 - self.penetration))
         return float(self.fitness * (1.0 - self.violation) * (1.0 - self.penetration))
 
 
@@ -239,6 +258,145 @@ FREE_SPACE_FULL_PIXELS = 160 * 120
 CONVERGED = 1e-9
 """ICP stops when fitness and RMSE change by less than this fraction in one iteration
 (looser values, e.g. 1e-6, stopped the tracker short by up to 0.7 mm in fast motion)."""
+
+
+VISIBLE_MIN = 0.35
+"""A pose whose model surface is at least this share unoccluded counts its explained share in
+full; below, the confidence falls in proportion (a pose hidden behind other things has no
+evidence for it: a wrong pose placed behind a forearm explains nothing, contradicts nothing)."""
+
+
+@dataclass(frozen=True)
+class SurfaceCheck:
+    """How the observed depth agrees with a model rendered at a pose (pixel counts in shares).
+
+    Every pixel of the rendered model (away from its depth edges, with an observed depth,
+    not hidden by a known occluder) is *explained* (observed within the tolerance of the
+    model's surface), *behind* (the sensor sees through the model: free space violated) or
+    *in front* (something unknown hides it: a hand, an arm).
+
+    Attributes
+    ----------
+    explained : float
+        ``E / (E + B)``: the share of the model surface predicted visible (not hidden) that
+        the observation explains.
+    visible : float
+        ``(E + B) / (E + B + F)``: the share of the model's pixels not hidden by something
+        in front.
+    violation : float
+        ``B / (E + B)``: the free-space violation.
+    pixels : int
+        ``E + B + F`` (0: the model is not in view).
+    silhouette_violation : float
+        The free-space violation over all the model's pixels, its depth edges included: a
+        pose 1 mm off along a face still explains its surface within the noise, but the
+        sensor sees past its silhouette (used to rank poses, not as the confidence).
+    """
+
+    explained: float
+    visible: float
+    violation: float
+    pixels: int
+    silhouette_violation: float = 0.0
+
+    @property
+    def score(self) -> float:
+        """``explained * min(1, visible / VISIBLE_MIN)``, in [0, 1]."""
+        return float(self.explained * min(1.0, self.visible / VISIBLE_MIN))
+
+
+def _interior(rendered: npt.NDArray[np.float32], jump: float) -> npt.NDArray[np.bool_]:
+    """Model pixels whose 4 neighbours are model pixels within ``jump`` of their depth."""
+    r = rendered.astype(np.float64)
+    ok = r > 0
+    pad = np.pad(r, 1)
+    for dv, du in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        nb = pad[dv : dv + r.shape[0], du : du + r.shape[1]]
+        ok &= (nb > 0) & (np.abs(nb - r) <= jump)
+    return ok
+
+
+def _model_window(
+    X_CM: FloatArray, model: ModelCloud, camera: Camera
+) -> tuple[int, int, int, int] | None:
+    """Image window ``(u0, v0, w, h)`` (1-pixel margin) of the model's projection, or None."""
+    V = transform_points(X_CM, model.vertices)
+    if np.any(V[:, 2] <= 0.01):
+        V = V[V[:, 2] > 0.01]
+        if len(V) == 0:
+            return None
+    uv = camera.project(V)
+    u0 = int(max(np.floor(uv[:, 0].min()) - 1, 0))
+    v0 = int(max(np.floor(uv[:, 1].min()) - 1, 0))
+    u1 = int(min(np.ceil(uv[:, 0].max()) + 2, camera.width))
+    v1 = int(min(np.ceil(uv[:, 1].max()) + 2, camera.height))
+    if u1 - u0 < 1 or v1 - v0 < 1:
+        return None
+    return u0, v0, u1 - u0, v1 - v0
+
+
+def surface_check(
+    X_CM: npt.ArrayLike,
+    model: ModelCloud,
+    depth: npt.ArrayLike,
+    camera: Camera,
+    *,
+    tolerance: float = 0.005,
+    occluder: npt.ArrayLike | None = None,
+    max_pixels: int = FREE_SPACE_FULL_PIXELS // 4,
+) -> SurfaceCheck:
+    """Compare the observed depth with the model rendered at ``X_CM`` (see :class:`SurfaceCheck`).
+
+    Parameters
+    ----------
+    X_CM : ndarray, shape (4, 4)
+        Pose of the model in the camera frame (metres).
+    model : ModelCloud
+    depth : ndarray, shape (H, W)
+        Observed depth, metres, 0 where none (such pixels do not count).
+    camera : Camera
+        The camera of ``depth``.
+    tolerance : float, optional
+        Metres (a few standard deviations of the depth noise at the object).
+    occluder : ndarray, shape (H, W), optional
+        Depth of known objects (the environment model rendered at its pose), 0 where none:
+        model pixels behind it are not predicted visible and do not count.
+    max_pixels : int, optional
+        The model's window is tested at every ``step``-th pixel of every ``step``-th row,
+        with ``step`` the least that keeps it below this many pixels.
+    """
+    X = np.asarray(X_CM, dtype=np.float64)
+    box = _model_window(X, model, camera)
+    if box is None:
+        return SurfaceCheck(0.0, 0.0, 1.0, 0)
+    u0, v0, w, h = box
+    step = max(1, int(np.ceil(np.sqrt(w * h / max_pixels))))
+    cam = camera.crop(u0, v0, w, h).subsampled(step)
+    d = np.asarray(depth)[v0 : v0 + h : step, u0 : u0 + w : step]
+    rendered, _ = rasterize(transform_points(X, model.vertices), model.triangles, cam)
+    every = (rendered > 0) & (d > 0)
+    if occluder is not None:
+        occ = np.asarray(occluder)[v0 : v0 + h : step, u0 : u0 + w : step]
+        every &= ~((occ > 0) & (occ < rendered - tolerance))
+    inner = every
+    if min(cam.width, cam.height) > 6:
+        inner = every & _interior(rendered, 2.0 * tolerance)
+        if not inner.any():
+            inner = every
+    diff = d.astype(np.float64) - rendered
+    behind = diff > tolerance
+    n_e = int(np.count_nonzero(inner & (np.abs(diff) <= tolerance)))
+    n_b = int(np.count_nonzero(inner & behind))
+    n = int(np.count_nonzero(inner))
+    if n == 0:
+        return SurfaceCheck(0.0, 0.0, 1.0, 0)
+    all_b = int(np.count_nonzero(every & behind))
+    all_seen = int(np.count_nonzero(every & (diff >= -tolerance)))
+    edge = all_b / all_seen if all_seen else 0.0
+    seen = n_e + n_b
+    if seen == 0:
+        return SurfaceCheck(0.0, 0.0, 0.0, n, edge)
+    return SurfaceCheck(n_e / seen, seen / n, n_b / seen, n, edge)
 
 
 def _kernel(o3d: Any, loss: str, scale: float) -> Any:
@@ -347,6 +505,7 @@ def register(
     dense: bool = True,
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
+    occluder: npt.ArrayLike | None = None,
 ) -> Registration:
     """Robust point-to-plane ICP of a model to observed points, from an initial pose.
 
@@ -382,8 +541,12 @@ def register(
         The other object and its pose in the camera frame: enables the interpenetration
         check (see :func:`penetration`).
     free_space_tolerance : float, optional
-        Depth (metres) behind the model beyond which an observed pixel violates free space
-        (a few standard deviations of the depth noise; see :func:`free_space_violation`).
+        Depth (metres) within which an observed pixel is explained by the model, beyond which
+        (behind it) it violates free space: a few standard deviations of the depth noise
+        (see :func:`surface_check`).
+    occluder : ndarray, shape (H, W), optional
+        Depth of the other object rendered at its pose (same window as ``depth``): model
+        pixels it hides are not predicted visible.
 
     Returns
     -------
@@ -414,14 +577,14 @@ def register(
     fitness = float(np.count_nonzero(inlier)) / len(P)
     rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
     X_CM = invert_pose(T)
-    violation = 0.0
+    surface = None
     if depth is not None and camera is not None:
-        step = 2 if camera.width * camera.height >= FREE_SPACE_FULL_PIXELS else 1
-        violation = free_space_violation(
-            X_CM, model, depth, camera, step=step, tolerance=free_space_tolerance
+        surface = surface_check(
+            X_CM, model, depth, camera, tolerance=free_space_tolerance, occluder=occluder
         )
     pen = penetration(X_CM, model, obstacle) if obstacle is not None else 0.0
-    return Registration(X_CM, fitness, rmse, violation, len(P), pen)
+    violation = surface.violation if surface is not None else 0.0
+    return Registration(X_CM, fitness, rmse, violation, len(P), pen, surface)
 
 
 def _candidate_rotations(points_C: FloatArray, model: ModelCloud) -> list[FloatArray]:
@@ -483,6 +646,7 @@ def initialise(
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
     symmetry_rotations: npt.ArrayLike | None = None,
+    occluder: npt.ArrayLike | None = None,
 ) -> Registration:
     """Find a model's pose from its observed points without an initial guess.
 
@@ -516,6 +680,8 @@ def initialise(
     symmetry_rotations : ndarray, shape (K, 3, 3), optional
         Rotations of the model's symmetries (:func:`apo.symmetry.symmetries`): candidate
         orientations that differ by one are tried once (:func:`distinct_up_to_symmetry`).
+    occluder : ndarray, shape (H, W), optional
+        See :func:`register`.
 
     Returns
     -------
@@ -542,7 +708,7 @@ def initialise(
                 register(
                     sub, model, X, inlier_distance=inlier_distance, loss=loss, iterations=12,
                     depth=depth, camera=camera, obstacle=obstacle, dense=False,
-                    free_space_tolerance=free_space_tolerance,
+                    free_space_tolerance=free_space_tolerance, occluder=occluder,
                 )
             )  # fmt: skip
     scored.sort(key=lambda r: -r.confidence)
@@ -559,6 +725,7 @@ def initialise(
             camera=camera,
             obstacle=obstacle,
             free_space_tolerance=free_space_tolerance,
+            occluder=occluder,
         )
         if best is None or r.confidence > best.confidence:
             best = r

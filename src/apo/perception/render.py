@@ -512,6 +512,7 @@ def render_demonstration(
     up: npt.ArrayLike = (0.0, 0.0, 1.0),
     table_colour: str = "textured",
     arm: bool = False,
+    background_frames: int = 1,
 ) -> Path:
     """Render a demonstration into a frames folder (the layout of ``docs/perception.md``).
 
@@ -551,6 +552,9 @@ def render_demonstration(
         chromaticity test), or plain white (the parts' own colour).
     arm : bool, optional
         With ``hand``, add the forearm (:func:`hand_triangles`).
+    background_frames : int, optional
+        Depth frames of the background, each with its own noise (``background/depth.png``,
+        ``depth_000001.png``, ...).
 
     Returns
     -------
@@ -600,10 +604,12 @@ def render_demonstration(
         if static:
             bg = render_scene(static, static_poses, camera, albedo=static_albedo, textured=[tex])
             bg_rgb, bg_depth = _noisy(bg, model, rng)
+            more = [_noisy(bg, model, rng)[1] for _ in range(background_frames - 1)]
         else:
             bg_rgb = np.zeros((camera.height, camera.width, 3), dtype=np.uint8)
             bg_depth = np.zeros((camera.height, camera.width), dtype=np.float32)
-        write_background(out, bg_rgb, bg_depth, camera)
+            more = [bg_depth] * (background_frames - 1)
+        write_background(out, bg_rgb, bg_depth, camera, *more)
     H = hand_triangles(G, up=up, arm=arm) if hand else None
     # The table and the environment do not move: render them once, then only the grasped
     # object (and the hand) per frame, composited by depth (the same z-buffer test).

@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import TrackingLostError
-from apo.perception.frames import Camera, FrameSource, open_frames
+from apo.perception.frames import Camera, FrameSource, masked_median, open_frames
 from apo.perception.register import (
     ModelCloud,
     Registration,
@@ -114,6 +114,9 @@ class TrackOptions:
         plane, the environment's when within as many of its rendering, and a point is
         explained (fitness) within ``0.75`` of as many of the model. The fixed thresholds
         above are the floors (calibration and model errors do not shrink with the noise).
+    surface_tolerance : float
+        Floor of the depth tolerance within which an observed pixel explains the model's
+        rendered surface (the confidence; otherwise ``noise_sigmas`` noise sigmas).
     seed : int
         Seed of every random choice (subsampling, RANSAC).
     """
@@ -134,6 +137,7 @@ class TrackOptions:
     loss: str = "tukey"
     noise: float | None = None
     noise_sigmas: float = 4.0
+    surface_tolerance: float = 0.003
     seed: int = 0
 
 
@@ -236,17 +240,29 @@ def _noise_model(src: FrameSource, options: TrackOptions) -> DepthNoiseModel:
 
 
 class _Segmenter:
+    """Object pixels of a frame: in front of the background and above the support plane.
+
+    The support plane is fitted robustly (RANSAC, then least squares on its inliers) to the
+    background depth when given, else to the first frame; a pixel is an object's when it is
+    above the plane by more than the threshold (in noise sigmas) and, with a background,
+    also in front of it: either test alone lets the far table's noise through.
+    """
+
     def __init__(self, src: FrameSource, options: TrackOptions, noise: DepthNoiseModel) -> None:
         self.camera = src.camera
         self.options = options
         self.noise = noise
         _, bg_depth = src.background()
         self.background = bg_depth
+        # The difference of a depth and the background's: sqrt(1 + pi / 2n) sigma for the
+        # median of n background frames (sqrt(2) for one).
+        n_bg = max(int(getattr(src, "background_count", 1)), 1)
+        self.difference = float(np.sqrt(1.0 + (1.0 if n_bg == 1 else np.pi / (2 * n_bg))))
+        d0 = bg_depth if bg_depth is not None else src.depth(0)
+        pts = self.camera.backproject(d0)
         self.plane: Plane | None = None
-        if bg_depth is None:
-            d0 = src.depth(0)
-            pts = self.camera.backproject(d0)
-            z = float(np.median(pts[:, 2])) if len(pts) else 0.5
+        if len(pts) >= 3:
+            z = float(np.median(pts[:, 2]))
             self.plane = fit_support_plane(
                 pts[:: max(1, len(pts) // 20000)],
                 threshold=max(0.003, 3.0 * float(noise.sigma(z))),
@@ -265,8 +281,7 @@ class _Segmenter:
     ) -> BoolArray:
         """Object pixels (of the window when given: all arrays are of the whole frame)."""
         t = self.options.foreground_threshold
-        cam = self.camera
-        bg = self.background
+        cam, bg = self.camera, self.background
         if window is not None:
             u0, v0, w, h = window
             rgb = rgb[v0 : v0 + h, u0 : u0 + w]
@@ -274,14 +289,14 @@ class _Segmenter:
             cam = cam.crop(u0, v0, w, h)
             if bg is not None:
                 bg = bg[v0 : v0 + h, u0 : u0 + w]
-        if bg is not None:  # the difference of two noisy depths: sqrt(2) sigma
-            thr = self.threshold(depth, t, float(np.sqrt(2.0)))
-            fg = foreground_from_background(depth, bg, threshold=thr)
-        else:
-            assert self.plane is not None
+        fg = depth > 0
+        if self.plane is not None:
             fg = foreground_from_plane(
                 depth, cam, self.plane, threshold=self.threshold(depth, t, 1)
             )
+        if bg is not None:  # the difference of two noisy depths
+            thr = self.threshold(depth, t, self.difference)
+            fg &= foreground_from_background(depth, bg, threshold=thr)
         # The colour test only where the depth found something (a fraction of the pixels).
         out = np.zeros(fg.shape, dtype=bool)
         out[fg] = self.options.colour.mask(rgb[fg][:, None, :])[:, 0]
@@ -289,6 +304,7 @@ class _Segmenter:
 
 
 Window = tuple[int, int, int, int]
+_Frame = tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]
 
 
 def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> Window | None:
@@ -311,36 +327,35 @@ def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> 
 
 
 def _environment_points(
-    src: FrameSource, seg: _Segmenter, options: TrackOptions
+    src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame]
 ) -> tuple[FloatArray, npt.NDArray[np.float32]]:
+    """Return the environment's points (median depth of its pixels) and the median depth.
+
+    The frames decoded are kept in ``cache`` for the tracking loop (decoded once).
+    """
     n = len(src)
     idx = np.unique(np.linspace(0, n - 1, min(n, options.histogram_frames)).round().astype(int))
     masks = np.empty((len(idx), src.camera.height, src.camera.width), dtype=bool)
     depths = np.empty(masks.shape, dtype=np.float32)
     for k, i in enumerate(idx):
-        depth = src.depth(int(i))
-        masks[k] = seg.objects(src.rgb(int(i)), depth)
+        rgb, depth = cache[int(i)] = _read(src, int(i))
+        masks[k] = seg.objects(rgb, depth)
         depths[k] = depth
     static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
-    # Per-pixel median depth of the static pixels (noise averaged; passages removed).
-    median = _masked_median(depths, masks & static[None])
-    median_all = np.median(depths, axis=0).astype(np.float32)  # for the free-space check
+    # Per-pixel median depth of the static pixels (noise averaged; passages removed),
+    # sorted at those pixels only (a tenth of the image or less).
+    median = np.zeros(static.shape, dtype=np.float32)
+    median[static] = masked_median(depths[:, static], masks[:, static])
+    # For the surface check: every pixel, over at most 9 of the frames (the sort is the cost).
+    few = depths[:: max(1, -(-len(depths) // 9))]
+    median_all = masked_median(few, few > 0)
     env = _largest_component(static & (median > 0))
     return src.camera.backproject(median, env), median_all
 
 
-def _masked_median(
-    values: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_]
-) -> npt.NDArray[np.float32]:
-    """Per-pixel median of ``values`` (N, H, W) over the frames where ``mask``; 0 if none."""
-    stack = np.sort(np.where(mask, values, np.float32(np.inf)), axis=0)
-    count = mask.sum(axis=0)
-    idx = np.maximum(count - 1, 0) // 2
-    med = np.take_along_axis(stack, idx[None], axis=0)[0]
-    return np.where(count > 0, med, 0.0).astype(np.float32)
-
-
-def _read(src: FrameSource, i: int) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
+def _read(src: FrameSource, i: int, cache: dict[int, _Frame] | None = None) -> _Frame:
+    if cache is not None and i in cache:
+        return cache.pop(i)
     return src.rgb(i), src.depth(i)
 
 
@@ -351,6 +366,292 @@ def _as_pose(X: npt.ArrayLike | None, name: str) -> FloatArray | None:
     if M.shape != (4, 4):
         raise ValueError(f"{name} must be a 4x4 pose, got shape {M.shape}")
     return M
+
+
+def _gate(points: FloatArray, centre: FloatArray, radius: float) -> FloatArray:
+    """Return the points within ``radius`` of ``centre`` (gating around a prediction)."""
+    return np.asarray(
+        points[np.einsum("ij,ij->i", points - centre, points - centre) <= radius * radius]
+    )
+
+
+def _object_near_largest(
+    mask: BoolArray, depth: npt.NDArray[np.float32], camera: Camera, reach: float
+) -> FloatArray:
+    """Return the points of the largest component and of the components near it (3-D).
+
+    The global path has no prediction to gate with: it takes the largest connected
+    component and every other one (of at least 5 % of its size) whose centroid is within
+    ``reach`` (the model's diameter) of its centroid: a hand across the part cuts its image
+    in two, and the largest piece alone is ambiguous.
+    """
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask & (depth > 0))
+    pts = camera.backproject(depth, labels > 0)
+    if n <= 1:
+        return pts
+    lab = labels[labels > 0]  # the same row-major order as the points
+    sizes = np.bincount(lab, minlength=n + 1).astype(np.float64)
+    centroids = (
+        np.stack([np.bincount(lab, weights=pts[:, k], minlength=n + 1) for k in range(3)], axis=1)
+        / np.maximum(sizes, 1.0)[:, None]
+    )
+    big = int(np.argmax(sizes))
+    near = np.linalg.norm(centroids - centroids[big], axis=1) <= reach
+    keep = near & (sizes >= 0.05 * sizes[big])
+    keep[0] = False
+    return np.asarray(pts[keep[lab]])
+
+
+@dataclass
+class _Scene:
+    """Everything fixed for one recording: the models, the noise, the environment's pose."""
+
+    src: FrameSource
+    opt: TrackOptions
+    G: ModelCloud
+    E: ModelCloud
+    noise: DepthNoiseModel
+    seg: _Segmenter
+    syms_G: tuple[Symmetry, ...]
+    syms_E: tuple[Symmetry, ...]
+    X_CE: FloatArray = field(default_factory=lambda: np.eye(4))
+    env: Registration | None = None
+    env_depth: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    cache: dict[int, _Frame] = field(default_factory=dict)  # frames decoded during the setup
+
+    @property
+    def camera(self) -> Camera:
+        return self.src.camera
+
+    def settings(self, points: FloatArray) -> dict[str, Any]:
+        """ICP settings at the points' distance: inlier and surface distances in sigmas."""
+        opt = self.opt
+        z = float(np.median(points[:, 2])) if len(points) else 0.5
+        s = float(self.noise.sigma(z))
+        return {
+            "inlier_distance": max(opt.inlier_distance, 0.75 * opt.noise_sigmas * s),
+            "free_space_tolerance": max(opt.surface_tolerance, opt.noise_sigmas * s),
+            "loss": opt.loss,
+        }
+
+
+def _open_scene(
+    frames: str | Path | FrameSource, grasped: Any, environment: Any, units: str | None,
+    opt: TrackOptions,
+) -> _Scene:  # fmt: skip
+    src: FrameSource = frames if not isinstance(frames, str | Path) else open_frames(frames)
+    G = ModelCloud(mesh_triangles(grasped, units=units), seed=opt.seed)
+    E = ModelCloud(
+        mesh_triangles(environment, units=units), spacing=0.0003, max_dense=200000, seed=opt.seed
+    )
+    noise = _noise_model(src, opt)
+    syms_G = tuple(symmetries(G.vertices, G.triangles))
+    syms_E = tuple(symmetries(E.vertices, E.triangles))
+    return _Scene(src, opt, G, E, noise, _Segmenter(src, opt, noise), syms_G, syms_E)
+
+
+def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
+    """Register the environment on the median depth of its pixels over many frames."""
+    opt, E, cam = scene.opt, scene.E, scene.camera
+    env_pts, median_depth = _environment_points(scene.src, scene.seg, opt, scene.cache)
+    if len(env_pts) < opt.min_points:
+        raise TrackingLostError(
+            f"environment object not found: only {len(env_pts)} static object pixels "
+            f"(check the colour model and the background; or give its pose with "
+            f"--init-environment)"
+        )
+    if len(env_pts) > 20000:
+        rng = np.random.default_rng(opt.seed)
+        env_pts = env_pts[rng.choice(len(env_pts), 20000, replace=False)]
+    kw = scene.settings(env_pts)
+    if XE0 is not None:
+        env = register(env_pts, E, XE0, depth=median_depth, camera=cam, **kw)
+    else:
+        env = initialise(
+            env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
+            symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E], **kw,
+        )  # fmt: skip
+    if env.confidence < opt.min_confidence:
+        hint = (
+            "; give its pose in the camera frame with --init-environment "
+            "(library: init_environment)"
+            if XE0 is None
+            else "; check --init-environment"
+        )
+        raise TrackingLostError(
+            f"environment object not found: best pose has confidence {env.confidence:.2f} "
+            f"(share of its predicted-visible surface explained by the depth; free-space "
+            f"violation {env.violation:.2f}) < {opt.min_confidence}{hint}"
+        )
+    scene.env = env
+    scene.X_CE = _twin(env.X_CM, XE0, scene.syms_E, E)
+    scene.env_depth, _ = rasterize(transform_points(scene.X_CE, E.vertices), E.triangles, cam)
+
+
+class _Tracker:
+    """The grasped object, frame by frame (see :func:`track_frames`)."""
+
+    def __init__(self, scene: _Scene, XG0: FloatArray | None) -> None:
+        self.scene, self.opt, self.G, self.XG0 = scene, scene.opt, scene.G, XG0
+        n = len(scene.src)
+        self.X_CG = np.full((n, 4, 4), np.nan)
+        self.conf = np.zeros(n)
+        self.lost = np.ones(n, dtype=bool)
+        self.reinit = np.zeros(n, dtype=bool)
+        self.history: list[FloatArray] = []  # last tracked poses (for the prediction)
+        self.rmses: list[float] = []  # RMS residuals of the last tracked frames
+        self.confs: list[float] = []  # and their confidences
+        self.fits: list[float] = []  # and qualities
+        self.gap = 0
+        self.rng = np.random.default_rng(self.opt.seed)
+        self.margin = self.opt.track_distance + 0.1 * self.G.diameter
+        self.obstacle = (scene.E, scene.X_CE)
+        self.centre = (self.G.vertices.min(0) + self.G.vertices.max(0)) / 2
+
+    def predict(self, i: int) -> FloatArray | None:
+        """Constant velocity from the last two frames (never across a gap or a re-start)."""
+        if i == 0 and self.XG0 is not None:
+            return self.XG0
+        if not self.history or self.gap > 2:
+            return None
+        pred = self.history[-1]
+        if len(self.history) >= 2 and self.gap == 0:
+            pred = orthonormalised(pred @ invert_pose(self.history[-2]) @ pred)
+        return pred
+
+    def gate(self, pred: FloatArray) -> tuple[FloatArray, float]:
+        """Centre and radius of the sphere the object can be in: its extent + motion margin."""
+        speed = 0.0
+        if len(self.history) >= 2:
+            speed = float(np.linalg.norm(self.history[-1][:3, 3] - self.history[-2][:3, 3]))
+        c = transform_points(pred, self.centre[None])[0]
+        return c, self.G.diameter / 2 + self.margin + speed
+
+    def points(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None,
+        gate: tuple[FloatArray, float] | None = None,
+    ) -> tuple[FloatArray, npt.NDArray[np.float32], Camera, npt.NDArray[np.float32]]:  # fmt: skip
+        """Observed points of the grasped object; the depth, camera and environment depth."""
+        s = self.scene
+        env_d, d, c = s.env_depth, depth, s.camera
+        if window is not None:
+            u0, v0, w, h = window
+            env_d = env_d[v0 : v0 + h, u0 : u0 + w]
+            d = depth[v0 : v0 + h, u0 : u0 + w]
+            c = c.crop(u0, v0, w, h)
+        env_thr = s.seg.threshold(d, self.opt.environment_threshold, 1)
+        mask = grasped_mask(s.seg.objects(rgb, depth, window), d, env_d, threshold=env_thr)
+        if window is None:
+            pts = _object_near_largest(mask, d, c, self.G.diameter)
+        else:
+            pts = c.backproject(d, mask)  # clutter: removed by the 3-D gate
+        if gate is not None:
+            pts = _gate(pts, *gate)
+        if len(pts) > self.opt.max_points:
+            pts = pts[self.rng.choice(len(pts), self.opt.max_points, replace=False)]
+        return pts, d, c, env_d
+
+    def good(self, r: Registration) -> bool:
+        """Confident, explaining its points and fitting them as closely as the last frames did.
+
+        Each bar is ``good_confidence``, or 0.01 below the median of the last tracked frames'
+        (what a correct pose scores depends on the sensor and the scene): the confidence
+        (the model surface explained) and the quality (:attr:`Registration.quality`: a pose
+        1 mm off along a face still explains its surface within the noise, but the sensor
+        sees past its silhouette).
+        """
+
+        def bar(history: list[float]) -> float:
+            top = self.opt.good_confidence
+            return min(top, float(np.median(history)) - 0.01) if len(history) >= 3 else top
+
+        if r.confidence < bar(self.confs) or r.quality < bar(self.fits):
+            return False
+        rm = self.rmses
+        return len(rm) < 3 or r.rmse <= self.opt.rmse_factor * float(np.median(rm))
+
+    def track_window(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], pred: FloatArray
+    ) -> Registration | None:
+        """Register in the window around the prediction: from it, the last pose, coarse-to-fine."""
+        window = _window(self.scene.camera, pred, self.G, self.margin)
+        if window is None:
+            return None
+        pts, d, c, env_d = self.points(rgb, depth, window, self.gate(pred))
+        if len(pts) < self.opt.min_points:
+            return None
+        kw = {**self.scene.settings(pts), "depth": d, "camera": c, "occluder": env_d,
+              "obstacle": self.obstacle}  # fmt: skip
+        reach = max(self.opt.track_distance, 3.0 * kw["inlier_distance"])
+        result: Registration | None = None
+        starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
+        for start in starts:
+            r = register(pts, self.G, start, max_distance=reach, coarse=False, **kw)
+            if _displacement(self.G, start, r.X_CM) > self.opt.settle_distance:
+                # Far from the start: the ICP may have stopped on its iteration limit.
+                again = register(pts, self.G, r.X_CM, max_distance=reach, coarse=False, **kw)
+                if not _better(r, again):
+                    r = again
+            if _better(r, result):
+                result = r
+            if result is not None and self.good(result):
+                return result
+        r = register(pts, self.G, pred, **kw)
+        return r if _better(r, result) else result
+
+    def reinitialise(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]
+    ) -> Registration | None:
+        """Run the global search on the whole frame's largest component."""
+        pts, d, c, env_d = self.points(rgb, depth, None)
+        if len(pts) < self.opt.min_points:
+            return None
+        return initialise(
+            pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
+            symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
+            **self.scene.settings(pts),
+        )  # fmt: skip
+
+    def step(self, i: int, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]) -> None:
+        """Track frame ``i``: from the prediction, else (real loss) by the global search."""
+        opt = self.opt
+        pred = self.predict(i)
+        result = self.track_window(rgb, depth, pred) if pred is not None else None
+        fresh = False  # the result comes from the global search
+        if result is None or result.confidence < opt.min_confidence:
+            self.reinit[i] = i > 0 or self.XG0 is not None
+            again = self.reinitialise(rgb, depth)
+            if again is not None and (result is None or again.confidence > result.confidence):
+                result, fresh = again, True
+        if result is not None:
+            self.conf[i] = result.confidence
+        if result is None or result.confidence < opt.min_confidence:
+            self.gap += 1
+            return
+        # The twin nearest the last tracked pose (the given one at the first frame).
+        ref = self.history[-1] if self.history else self.XG0
+        X = _twin(result.X_CM, ref, self.scene.syms_G, self.G)
+        self.X_CG[i] = X
+        self.lost[i] = False
+        # A velocity never spans a re-initialisation: start the history afresh.
+        self.history = [X] if fresh else [*self.history[-1:], X]
+        self.rmses = [*self.rmses[-9:], result.rmse]
+        self.confs = [*self.confs[-9:], result.confidence]
+        self.fits = [*self.fits[-9:], result.quality]
+        self.gap = 0
+
+
+def _better(a: Registration, b: Registration | None) -> bool:
+    """More confident; as confident (within 0.02): higher quality, then smaller RMS residual."""
+    if b is None:
+        return True
+    if abs(a.confidence - b.confidence) > 0.02:
+        return a.confidence > b.confidence
+    if abs(a.quality - b.quality) > 0.01:
+        return a.quality > b.quality
+    return a.rmse < b.rmse
 
 
 def track_frames(
@@ -398,212 +699,30 @@ def track_frames(
         The frames folder does not follow the documented layout.
     """
     opt = options or TrackOptions()
-    src: FrameSource = frames if not isinstance(frames, str | Path) else open_frames(frames)
-    cam: Camera = src.camera
-    G = ModelCloud(mesh_triangles(grasped_mesh, units=units), seed=opt.seed)
-    E = ModelCloud(
-        mesh_triangles(environment_mesh, units=units),
-        spacing=0.0003,
-        max_dense=200000,
-        seed=opt.seed,
-    )
     XG0 = _as_pose(init_grasped, "init_grasped")
     XE0 = _as_pose(init_environment, "init_environment")
-    rng = np.random.default_rng(opt.seed)
-    noise = _noise_model(src, opt)
-    seg = _Segmenter(src, opt, noise)
-
-    def scaled(points: FloatArray) -> dict[str, Any]:
-        """ICP settings at the points' distance: inlier and free-space distances in sigmas."""
-        z = float(np.median(points[:, 2])) if len(points) else 0.5
-        s = float(noise.sigma(z))
-        return {
-            "inlier_distance": max(opt.inlier_distance, 0.75 * opt.noise_sigmas * s),
-            "free_space_tolerance": max(0.005, opt.noise_sigmas * np.sqrt(2.0) * s),
-            "loss": opt.loss,
-        }
-
-    # Environment: many frames at once.
-    syms_G = tuple(symmetries(G.vertices, G.triangles))
-    syms_E = tuple(symmetries(E.vertices, E.triangles))
-    env_pts, median_depth = _environment_points(src, seg, opt)
-    if len(env_pts) < opt.min_points:
-        raise TrackingLostError(
-            f"environment object not found: only {len(env_pts)} static object pixels "
-            f"(check the colour model and the background)"
-        )
-    if len(env_pts) > 20000:
-        env_pts = env_pts[rng.choice(len(env_pts), 20000, replace=False)]
-    kw = scaled(env_pts)
-    if XE0 is not None:
-        env = register(env_pts, E, XE0, depth=median_depth, camera=cam, **kw)
-    else:
-        env = initialise(
-            env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
-            symmetry_rotations=[s.S[:3, :3] for s in syms_E], **kw,
-        )  # fmt: skip
-    if env.confidence < opt.min_confidence:
-        hint = (
-            "; give its pose in the camera frame with --init-environment "
-            "(library: init_environment)"
-            if XE0 is None
-            else "; check --init-environment"
-        )
-        raise TrackingLostError(
-            f"environment object not found: best pose has confidence {env.confidence:.2f} "
-            f"(fitness {env.fitness:.2f}, free-space violation {env.violation:.2f}) "
-            f"< {opt.min_confidence}{hint}"
-        )
-    X_CE = _twin(env.X_CM, XE0, syms_E, E)
-    env_depth, _ = rasterize(transform_points(X_CE, E.vertices), E.triangles, cam)
-    obstacle = (E, X_CE)
-
-    n = len(src)
-    X_CG = np.full((n, 4, 4), np.nan)
-    conf = np.zeros(n)
-    lost = np.ones(n, dtype=bool)
-    reinit = np.zeros(n, dtype=bool)
-    history: list[FloatArray] = []  # last tracked poses (for the prediction)
-    rmses: list[float] = []  # RMS residuals of the last tracked frames
-    confs: list[float] = []  # and their confidences
-    gap = 0
-
-    def good(r: Registration) -> bool:
-        """Confident, and fitting the points about as closely as the last frames did.
-
-        Confident: at least ``good_confidence``, or within 0.01 of the median of the last
-        tracked frames' confidences (the share of points a correct pose explains depends on
-        the sensor and the scene: 0.97 to 0.98 was the norm at 0.6 m with a grey table).
-        """
-        bar = opt.good_confidence
-        if len(confs) >= 3:
-            bar = min(bar, float(np.median(confs)) - 0.01)
-        if r.confidence < bar:
-            return False
-        return len(rmses) < 3 or r.rmse <= opt.rmse_factor * float(np.median(rmses))
-
-    def better(a: Registration, b: Registration | None) -> bool:
-        """More confident, or as confident (within 0.01) with a smaller RMS residual."""
-        if b is None:
-            return True
-        if abs(a.confidence - b.confidence) <= 0.01:
-            return a.rmse < b.rmse
-        return a.confidence > b.confidence
-
-    margin = opt.track_distance + 0.1 * G.diameter
-
-    def grasped_points(
-        rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None
-    ) -> tuple[FloatArray, npt.NDArray[np.float32], Camera]:
-        """Observed points of the grasped object, and the depth and camera they come from."""
-        env_d, d, c = env_depth, depth, cam
-        if window is not None:
-            u0, v0, w, h = window
-            env_d = env_depth[v0 : v0 + h, u0 : u0 + w]
-            d = depth[v0 : v0 + h, u0 : u0 + w]
-            c = cam.crop(u0, v0, w, h)
-        env_thr = seg.threshold(d, opt.environment_threshold, 1)
-        mask = grasped_mask(seg.objects(rgb, depth, window), d, env_d, threshold=env_thr)
-        if window is None:
-            mask = _largest_component(mask)
-        pts = c.backproject(d, mask)
-        if len(pts) > opt.max_points:
-            pts = pts[rng.choice(len(pts), opt.max_points, replace=False)]
-        return pts, d, c
-
+    scene = _open_scene(frames, grasped_mesh, environment_mesh, units, opt)
+    _find_environment(scene, XE0)
+    src, n = scene.src, len(scene.src)
+    tracker = _Tracker(scene, XG0)
     with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
-        pending = pool.submit(_read, src, 0)
+        pending = pool.submit(_read, src, 0, scene.cache)
         for i in range(n):
             rgb, depth = pending.result()
             if i + 1 < n:
-                pending = pool.submit(_read, src, i + 1)
-            pred: FloatArray | None
-            if i == 0 and XG0 is not None:
-                pred = XG0
-            elif history and gap <= 2:
-                pred = history[-1]
-                if len(history) >= 2 and gap == 0:
-                    pred = orthonormalised(history[-1] @ invert_pose(history[-2]) @ history[-1])
-            else:
-                pred = None
-            result: Registration | None = None
-            window = _window(cam, pred, G, margin) if pred is not None else None
-            if pred is not None and window is not None:
-                pts, d, c = grasped_points(rgb, depth, window)
-                if len(pts) >= opt.min_points:
-                    kw = scaled(pts)
-                    reach = max(opt.track_distance, 3.0 * kw["inlier_distance"])
-                    # From the constant-velocity prediction, then from the last pose (the
-                    # object may have stopped), then coarse-to-fine.
-                    starts = [pred] if len(history) < 2 or gap else [pred, history[-1]]
-                    for start in starts:
-                        r = register(
-                            pts, G, start, max_distance=reach, coarse=False,
-                            depth=d, camera=c, obstacle=obstacle, **kw,
-                        )  # fmt: skip
-                        if _displacement(G, start, r.X_CM) > opt.settle_distance:
-                            # Far from the start: the ICP may have stopped on its
-                            # iteration limit still moving; let it settle.
-                            again = register(
-                                pts, G, r.X_CM, max_distance=reach,
-                                coarse=False, depth=d, camera=c, obstacle=obstacle, **kw,
-                            )  # fmt: skip
-                            if not better(r, again):
-                                r = again
-                        if better(r, result):
-                            result = r
-                        if result is not None and good(result):
-                            break
-                    if result is not None and not good(result):
-                        r = register(pts, G, pred, depth=d, camera=c, obstacle=obstacle, **kw)
-                        if better(r, result):
-                            result = r
-            fresh = False  # the result comes from the global search
-            if result is None or result.confidence < opt.min_confidence:
-                # (Re-)initialise from the whole frame.
-                reinit[i] = i > 0 or XG0 is not None
-                pts, d, c = grasped_points(rgb, depth, None)
-                if len(pts) >= opt.min_points:
-                    kw = scaled(pts)
-                    again = initialise(
-                        pts, G, depth=d, camera=c, seed=opt.seed, obstacle=obstacle,
-                        symmetry_rotations=[s.S[:3, :3] for s in syms_G], **kw,
-                    )  # fmt: skip
-                    if result is None or again.confidence > result.confidence:
-                        result, fresh = again, True
-            if result is not None:
-                conf[i] = result.confidence
-            if result is not None and result.confidence >= opt.min_confidence:
-                # The twin nearest the last tracked pose (the given one at the first frame).
-                ref = history[-1] if history else XG0
-                X = _twin(result.X_CM, ref, syms_G, G)
-                X_CG[i] = X
-                lost[i] = False
-                # A velocity never spans a re-initialisation: start the history afresh.
-                history = [X] if fresh else [*history[-1:], X]
-                rmses = [*rmses[-9:], result.rmse]
-                confs = [*confs[-9:], result.confidence]
-                gap = 0
-            else:
-                gap += 1
+                pending = pool.submit(_read, src, i + 1, scene.cache)
+            tracker.step(i, rgb, depth)
             if progress is not None:
                 progress(i + 1, n)
-    if lost.all():
+    if tracker.lost.all():
         raise TrackingLostError(
-            f"grasped object lost in all {n} frames (best confidence {conf.max():.2f} "
-            f"< {opt.min_confidence})"
+            f"grasped object lost in all {n} frames (best confidence "
+            f"{tracker.conf.max():.2f} < {opt.min_confidence})"
         )
-    X_EG = np.einsum("ij,njk->nik", invert_pose(X_CE), X_CG)
+    assert scene.env is not None
+    X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), tracker.X_CG)
     return TrackResult(
-        np.asarray(src.times, dtype=np.float64),
-        X_CG,
-        X_CE,
-        X_EG,
-        conf,
-        lost,
-        env.confidence,
-        cam.X_WC,
-        reinit,
-        syms_G,
-        syms_E,
-    )
+        np.asarray(src.times, dtype=np.float64), tracker.X_CG, scene.X_CE, X_EG,
+        tracker.conf, tracker.lost, scene.env.confidence, src.camera.X_WC,
+        tracker.reinit, scene.syms_G, scene.syms_E,
+    )  # fmt: skip

@@ -63,6 +63,8 @@ class Variant:
         A hand and forearm hold the grasped part.
     background : bool
         Background frames are recorded.
+    background_frames : int
+        How many (depth frames of the empty scene, combined by the tracker).
     n_frames : int
     seed : int
         Seed of the sensor noise.
@@ -80,6 +82,7 @@ class Variant:
     background: bool
     n_frames: int = 120
     seed: int = 0
+    background_frames: int = 5
 
     def label(self) -> str:
         """Short description for tables."""
@@ -156,7 +159,7 @@ def render_variant(v: Variant, out_dir: str | Path) -> RenderedDemo:
     out = render_demonstration(
         G, E, X_CE, demo.X_EG_true, demo.times, cam, out_dir,
         units="m", noise=noise, seed=v.seed, hand=v.hand, arm=v.hand,
-        background=v.background, table_colour=v.table,
+        background=v.background, table_colour=v.table, background_frames=v.background_frames,
         up=SYNTHETIC_UP.get(demo.name, (0.0, 0.0, 1.0)),
     )  # fmt: skip
     return RenderedDemo(out, demo, G, E, cam, X_CE, X_CE @ demo.X_EG_true[0])

@@ -1,0 +1,92 @@
+"""The confidence of a pose: the share of the predicted-visible model surface explained.
+
+apo.perception.register.surface_check compares the observed depth with the model rendered at
+the pose: explained, seen through (free space violated) or hidden by something in front (a
+hand); apo.perception.track uses it to accept a frame, to re-initialise only on real loss,
+and to refuse an environment found without an initial pose that explains too little.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apo.errors import TrackingLostError
+from apo.perception.example import example_camera, insertion_trajectory, peg_and_slot
+from apo.perception.render import box_triangles, rasterize, render_demonstration
+from apo.spatial import transform_points
+
+pytest.importorskip("open3d")
+
+from apo.perception.register import ModelCloud, surface_check
+from apo.perception.track import track_frames
+
+
+@pytest.fixture(scope="module")
+def peg_view() -> dict:
+    cam, X_CE = example_camera(320, 240)
+    peg, _ = peg_and_slot()
+    X = X_CE @ insertion_trajectory(5)[1][0]
+    depth, _ = rasterize(transform_points(X, peg[0]), peg[1], cam)
+    rng = np.random.default_rng(0)
+    depth = np.where(depth > 0, depth, 0.5)  # a wall behind at 0.5 m
+    noisy = (depth + rng.normal(0, 2e-4, depth.shape)).astype(np.float32)
+    return {"cam": cam, "X": X, "depth": noisy, "model": ModelCloud(peg), "peg": peg}
+
+
+def test_true_pose_explains_its_visible_surface(peg_view: dict) -> None:
+    v = peg_view
+    s = surface_check(v["X"], v["model"], v["depth"], v["cam"], tolerance=0.003)
+    assert s.explained == 1.0 and s.visible == 1.0 and s.score == 1.0 and s.pixels > 100
+
+
+def test_pose_off_in_depth_or_sideways_is_not_explained(peg_view: dict) -> None:
+    v = peg_view
+    for shift in ([0.0, 0.0, -0.01], [0.02, 0.0, 0.0], [0.0, 0.015, 0.0]):
+        X = v["X"].copy()
+        X[:3, 3] += shift
+        s = surface_check(X, v["model"], v["depth"], v["cam"], tolerance=0.003)
+        assert s.score < 0.7, (shift, s)
+
+
+def test_pose_behind_the_observed_surface_has_no_evidence(peg_view: dict) -> None:
+    # 2 cm behind: the observation is in front of the whole model (as a wall would be).
+    v = peg_view
+    X = v["X"].copy()
+    X[:3, 3] += 0.02 * X[:3, 3] / np.linalg.norm(X[:3, 3])
+    depth = np.where(v["depth"] < 0.45, v["depth"], 0.2).astype(np.float32)  # a wall at 0.2 m
+    s = surface_check(X, v["model"], depth, v["cam"], tolerance=0.003)
+    assert s.visible < 0.05 and s.score < 0.2
+
+
+def test_hand_in_front_of_a_third_keeps_the_confidence(peg_view: dict) -> None:
+    v = peg_view
+    depth = v["depth"].copy()
+    rows = np.nonzero((depth < 0.45).any(axis=1))[0]
+    hidden = rows[: len(rows) // 3]  # the upper third, 3 cm nearer (a hand)
+    depth[hidden] -= 0.03
+    s = surface_check(v["X"], v["model"], depth, v["cam"], tolerance=0.003)
+    assert 0.5 < s.visible < 0.8 and s.explained == 1.0 and s.score == 1.0
+
+
+def test_known_occluder_hides_without_counting(peg_view: dict) -> None:
+    v = peg_view
+    occluder = np.where(v["depth"] < 0.45, v["depth"] - 0.01, 0).astype(np.float32)
+    depth = np.where(occluder > 0, occluder, v["depth"]).astype(np.float32)
+    s = surface_check(v["X"], v["model"], depth, v["cam"], tolerance=0.003, occluder=occluder)
+    assert s.pixels == 0 and s.score == 0.0  # nothing of it is predicted visible
+
+
+def test_wrong_environment_model_is_an_error_naming_init_environment(tmp_path: Path) -> None:
+    # The scene's environment is the U-slot; the model given is a plain block of about its
+    # size: the global search finds the best block pose, which explains too little.
+    cam, X_CE = example_camera(320, 240)
+    peg, slot = peg_and_slot()
+    times, X_EG = insertion_trajectory(6, duration=0.6)
+    render_demonstration(peg, slot, X_CE, X_EG, times, cam, tmp_path, seed=0)
+    lo, hi = slot[0].min(0), slot[0].max(0)
+    block = box_triangles(hi - lo, (hi + lo) / 2 + [0.0, 0.0, 0.03])
+    with pytest.raises(TrackingLostError, match="--init-environment"):
+        track_frames(tmp_path, peg, block, units="m")
