@@ -129,3 +129,27 @@ def test_repeated_poses_are_searched_once_with_the_same_states() -> None:
     every = scene.finder.find_batch(X)
     assert [s.key for s in states] == [s.key for s in every]
     assert states[n] is states[0] and states[-1] is not states[n - 1]
+
+
+def test_correction_of_repeated_poses_is_that_of_each_pose() -> None:
+    """correct_by_label corrects a repeated pose once; each frame gets its own result."""
+    from apo.recognition.contacts import observed_states
+    from apo.recognition.correction import correct_by_label, correct_poses
+    from apo.recognition.pipeline import make_scene
+    from apo.recognition.types import SegmentationCosts
+    from apo.synthetic import add_noise, peg_in_hole_2d
+
+    demo = add_noise(peg_in_hole_2d(), sigma_mm=0.5, sigma_deg=0.5, seed=4)
+    X = np.concatenate([demo.X_EG, demo.X_EG[::-2]])
+    scene = make_scene(demo.grasped, demo.environment, X, 0.004, SegmentationCosts())
+    states = observed_states(scene)
+    distinct = list({id(s): s for s in states}.values())
+    label = {id(s): i for i, s in enumerate(distinct)}
+    labels = np.array([label[id(s)] for s in states])
+    got = correct_by_label(demo.grasped, demo.environment, X, distinct, labels, 0.004)
+    for t in range(0, len(X), 7):
+        if states[t].elements:
+            want = correct_poses(demo.grasped, demo.environment, X[t : t + 1],
+                                 states[t].elements, threshold=0.004)  # fmt: skip
+            assert np.array_equal(got[0][t], want[0][0]) and got[1][t] == want[1][0]
+            assert got[2][t] == want[2][0] and got[3][t] == want[3][0]

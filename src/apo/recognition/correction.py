@@ -11,6 +11,7 @@ from apo.constants import tol
 from apo.contact import ContactElement, ContactState
 from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
+from apo.recognition.contacts import distinct_poses
 from apo.recognition.types import BoolArray, FloatArray, IntArray
 
 Corrected = tuple[FloatArray, FloatArray, FloatArray, BoolArray]
@@ -90,7 +91,13 @@ def correct_by_label(
     labels: IntArray,
     threshold: float,
 ) -> Corrected:
-    """Correct every pose ``X[t]`` under ``states[labels[t]]``, batched by state."""
+    """Correct every pose ``X[t]`` under ``states[labels[t]]``, batched by state.
+
+    Frames of one state whose observed poses are equal bit for bit are corrected once (the
+    correction of each frame is a function of its pose and the elements alone: the batch
+    iterates every frame on its own), as the contact search does
+    (:func:`apo.recognition.contacts.distinct_poses`).
+    """
     n = X.shape[0]
     Xc = X.copy()
     before = np.zeros(n)
@@ -101,8 +108,16 @@ def correct_by_label(
         elements = states[int(k)].elements
         if not elements:
             continue
-        Xk, b, a, c = correct_poses(grasped, environment, X[frames], elements, threshold=threshold)
-        Xc[frames], before[frames], after[frames], conv[frames] = Xk, b, a, c
+        first, inverse = distinct_poses(X[frames])
+        Xk, b, a, c = correct_poses(
+            grasped, environment, X[frames[first]], elements, threshold=threshold
+        )
+        Xc[frames], before[frames], after[frames], conv[frames] = (
+            Xk[inverse],
+            b[inverse],
+            a[inverse],
+            c[inverse],
+        )
     return Xc, before, after, conv
 
 
