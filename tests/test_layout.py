@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -291,3 +292,29 @@ def test_tolerances_only_in_constants() -> None:
 def test_tolerance_literal_detector() -> None:
     source = "a = 1e-9\nb = x < 0.999\nc = 0.5 * y\nd = 1.0 + 2.0\ne = -1e-12\nf = 1.001\n"
     assert _tolerance_literals(source) == [(1, 1e-9), (2, 0.999), (5, 1e-12), (6, 1.001)]
+
+
+def _drawn_layers(text: str) -> dict[str, int]:
+    """``{package: layer}`` read from the layer drawing of docs/architecture.md."""
+    block = text.split("## Layers", 1)[1].split("```", 2)[1]
+    layers: dict[str, int] = {}
+    layer = 0
+    for line in block.splitlines():
+        m = re.match(r"^ (\d)  (\S.*)$", line) or re.match(r"^ {4}(\S.*)$", line)
+        if not m:
+            continue
+        if len(m.groups()) == 2:
+            layer = int(m.group(1))
+        head = m.groups()[-1].split("   ")[0]  # the names, before the description
+        if "(" in head:  # "core (pure maths, ...)": a title, not a package
+            continue
+        for name in re.findall(r"([a-z_]+)(?:/|\.py)", head):
+            layers[name] = layer
+    return layers
+
+
+def test_layers_match_the_drawing_of_the_architecture_document() -> None:
+    # docs/architecture.md draws the layers; LAYERS is that drawing (a new package gets a
+    # line in both, in the same layer).
+    doc = SRC.parents[1] / "docs" / "architecture.md"
+    assert _drawn_layers(doc.read_text(encoding="utf-8")) == LAYERS
