@@ -407,6 +407,14 @@
   }
   var graphNodes = [];
   var GW = 1.5, GH = 0.95;  // node size in the graph's units
+  function currentBox(W, H) {  // the frame drawn around the current state's box (moved by update)
+    return { type: 'rect', x0: -W / 2 - 0.08, x1: W / 2 + 0.08, y0: -H / 2 - 0.08, y1: H / 2 + 0.08,
+             line: { color: '#000', width: 3 }, fillcolor: 'rgba(0,0,0,0)', name: 'current' };
+  }
+  function hoverTargets(hx, hy, htext, hidx) {  // invisible markers over the boxes: hover and click
+    return [{ type: 'scatter', mode: 'markers', x: hx, y: hy, text: htext, customdata: hidx,
+              hoverinfo: 'text', marker: { size: 40, opacity: 0 }, showlegend: false }];
+  }
   function graphFigure() {
     var n = states.length;
     var cols = Math.min(n, 5);
@@ -486,11 +494,9 @@
                  showarrow: false, font: { size: 10, color: '#666' },
                  text: (T.rejected.length - placed) + ' more rejected run(s): see the table' });
     }
-    shapes.push({ type: 'rect', x0: -W / 2 - 0.08, x1: W / 2 + 0.08, y0: -H / 2 - 0.08, y1: H / 2 + 0.08,
-                  line: { color: '#000', width: 3 }, fillcolor: 'rgba(0,0,0,0)', name: 'current' });
+    shapes.push(currentBox(W, H));
     var rows = Math.ceil(n / cols);
-    var data = [{ type: 'scatter', mode: 'markers', x: hx, y: hy, text: htext, customdata: hidx,
-                  hoverinfo: 'text', marker: { size: 40, opacity: 0 }, showlegend: false }];
+    var data = hoverTargets(hx, hy, htext, hidx);
     var layout = {
       margin: { l: 10, r: 10, t: 10, b: 10 }, showlegend: false, hovermode: 'closest',
       xaxis: { visible: false, range: [-W, (cols - 1) * DX + W + (rejShown.length ? 0.8 : 0)] },
@@ -561,11 +567,9 @@
                  text: '(' + (k + 1) + ')' + (t.count > 1 ? ' \u00d7' + t.count : '') + ' ' + lines.join('<br>') });
     });
     graphNodes = states.map(function (s) { return pos[nodeOf[s.id]]; });
-    shapes.push({ type: 'rect', x0: -W / 2 - 0.08, x1: W / 2 + 0.08, y0: -H / 2 - 0.08, y1: H / 2 + 0.08,
-                  line: { color: '#000', width: 3 }, fillcolor: 'rgba(0,0,0,0)', name: 'current' });
+    shapes.push(currentBox(W, H));
     var rows = Math.ceil(m / cols);
-    var data = [{ type: 'scatter', mode: 'markers', x: hx, y: hy, text: htext, customdata: hidx,
-                  hoverinfo: 'text', marker: { size: 40, opacity: 0 }, showlegend: false }];
+    var data = hoverTargets(hx, hy, htext, hidx);
     var layout = {
       margin: { l: 10, r: 10, t: 10, b: 10 }, showlegend: false, hovermode: 'closest',
       xaxis: { visible: false, range: [-W, (cols - 1) * DX + W] },
