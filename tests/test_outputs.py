@@ -206,10 +206,16 @@ def test_the_fallback_swap_without_renameat2(tmp_path: Path, monkeypatch: pytest
 
 
 def _nobody() -> list[str] | None:
-    """A command prefix running as user nobody, or None."""
+    """A command prefix running as user nobody, or None.
+
+    None also when nobody cannot import apo from this checkout (a clone under a folder
+    only root may enter, such as ``mktemp -d``'s 0700 folders).
+    """
     if os.geteuid() != 0 or shutil.which("setpriv") is None:
         return None
-    return ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
+    prefix = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
+    probe = subprocess.run([*prefix, sys.executable, "-c", "import apo.cli"], capture_output=True)
+    return prefix if probe.returncode == 0 else None
 
 
 @pytest.mark.parametrize("where", ["read-only-folder", "under-read-only-folder"])
@@ -219,7 +225,10 @@ def test_a_read_only_folder_is_refused_before_the_work(where: str) -> None:
     else:
         nobody = _nobody()
         if nobody is None:
-            pytest.skip("running as root without setpriv: root may write a read-only folder")
+            pytest.skip(
+                "running as root, and user nobody is unavailable (no setpriv, or it cannot "
+                "read this checkout): root may write a read-only folder"
+            )
         prefix = nobody
     base = Path(tempfile.mkdtemp(prefix="apo-ro-"))
     try:
