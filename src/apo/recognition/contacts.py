@@ -19,6 +19,7 @@ from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Sce
 
 __all__ = [
     "Observations",
+    "StateGrouper",
     "distinct_poses",
     "group_states",
     "near_signatures",
@@ -52,8 +53,25 @@ class Observations:
 def observe(
     scene: Scene, *, memoize: bool = False, progress: Progress | None = None
 ) -> Observations:
-    """Find the contact state at every frame and group the frames by distinct state."""
-    return group_states(observed_states(scene, memoize=memoize, progress=progress))
+    """Find the contact state at every frame and group the frames by distinct state.
+
+    The frames are searched ``CHUNK`` at a time and each chunk's states are grouped at
+    once (:class:`StateGrouper`): only the distinct states are kept, not one state per
+    frame, so the memory beyond the labels does not grow with the frames. The result is
+    that of ``group_states(observed_states(scene))``.
+    """
+    if memoize:
+        return group_states(observed_states(scene, memoize=True, progress=progress))
+    X, n = scene.X, scene.n
+    first, inverse = distinct_poses(X)
+    Xu, m = X[first], len(first)
+    grouper = StateGrouper()
+    labels = np.empty(m, dtype=np.int64)
+    for a in range(0, m, CHUNK):
+        labels[a : a + CHUNK] = grouper.add(scene.finder.find_batch(Xu[a : a + CHUNK]))
+        if progress is not None:
+            progress(n if a + CHUNK >= m else (a + CHUNK) * n // m, n)
+    return Observations(labels if m == n else labels[inverse], list(grouper.index), grouper.first)
 
 
 def observed_states(
@@ -112,18 +130,33 @@ def distinct_poses(X: FloatArray) -> tuple[IntArray, IntArray]:
 
 def group_states(states: Sequence[ContactState]) -> Observations:
     """Label each state by its key, in order of first appearance."""
-    index: dict[StateKey, int] = {}
-    labels = np.empty(len(states), dtype=np.int64)
-    first: list[ContactState] = []
-    known: dict[int, int] = {}  # id(state) -> label: a state repeated is keyed once
-    for i, s in enumerate(states):
-        k = known.get(id(s))
-        if k is None:
-            k = known[id(s)] = index.setdefault(s.key, len(index))
-            if k == len(first):
-                first.append(s)
-        labels[i] = k
-    return Observations(labels, list(index), first)
+    grouper = StateGrouper()
+    labels = grouper.add(states)
+    return Observations(labels, list(grouper.index), grouper.first)
+
+
+class StateGrouper:
+    """Labels of contact states by key, in order of first appearance, fed in batches.
+
+    Keeps only the first state of each key (``first``) and the key index (``index``).
+    """
+
+    def __init__(self) -> None:
+        self.index: dict[StateKey, int] = {}
+        self.first: list[ContactState] = []
+
+    def add(self, states: Sequence[ContactState]) -> IntArray:
+        """Return the labels of ``states`` (new keys get the next labels)."""
+        labels = np.empty(len(states), dtype=np.int64)
+        known: dict[int, int] = {}  # id(state) -> label: a state repeated is keyed once
+        for i, s in enumerate(states):
+            k = known.get(id(s))
+            if k is None:
+                k = known[id(s)] = self.index.setdefault(s.key, len(self.index))
+                if k == len(self.first):
+                    self.first.append(s)
+            labels[i] = k
+        return labels
 
 
 def _near_faces(poly: Polyhedron, P: FloatArray, threshold: float) -> BoolArray:
