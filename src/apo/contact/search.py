@@ -189,7 +189,8 @@ class ContactFinder:
         --------
         >>> import numpy as np
         >>> from apo.shapes import box
-        >>> finder = ContactFinder(box([0.1] * 3, center=[0, 0, 0.05]), box([1, 1, 0.1]))
+        >>> cube = box([0.1, 0.1, 0.1], center=[0.0, 0.0, 0.05])
+        >>> finder = ContactFinder(cube, box([1.0, 1.0, 0.1], center=[0.0, 0.0, -0.05]))
         >>> X = np.stack([np.eye(4)] * 3)
         >>> X[1, 2, 3] = 0.5  # lifted
         >>> [v.tolist() for v in finder.find_labels(X)]
