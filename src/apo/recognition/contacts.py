@@ -19,7 +19,6 @@ from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Sce
 
 __all__ = [
     "Observations",
-    "StateGrouper",
     "distinct_poses",
     "group_states",
     "near_signatures",
@@ -55,23 +54,29 @@ def observe(
 ) -> Observations:
     """Find the contact state at every frame and group the frames by distinct state.
 
-    The frames are searched ``CHUNK`` at a time and each chunk's states are grouped at
-    once (:class:`StateGrouper`): only the distinct states are kept, not one state per
-    frame, so the memory beyond the labels does not grow with the frames. The result is
-    that of ``group_states(observed_states(scene))``.
+    The frames are labelled by the keys of their states
+    (:meth:`apo.contact.ContactFinder.find_labels`: the search without the normals, points
+    and touching pairs), and the whole state is found at the first frame of each label
+    only: the same observations as :func:`group_states` of :func:`observed_states`, whose
+    states of later frames of a label would be dropped. A pose that repeats an earlier
+    one bit for bit is searched once (:func:`distinct_poses`).
     """
     if memoize:
         return group_states(observed_states(scene, memoize=True, progress=progress))
     X, n = scene.X, scene.n
     first, inverse = distinct_poses(X)
     Xu, m = X[first], len(first)
-    grouper = StateGrouper()
-    labels = np.empty(m, dtype=np.int64)
-    for a in range(0, m, CHUNK):
-        labels[a : a + CHUNK] = grouper.add(scene.finder.find_batch(Xu[a : a + CHUNK]))
+
+    def tick(done: int, _total: int) -> None:
         if progress is not None:
-            progress(n if a + CHUNK >= m else (a + CHUNK) * n // m, n)
-    return Observations(labels if m == n else labels[inverse], list(grouper.index), grouper.first)
+            progress(n if done >= m else done * n // m, n)
+
+    labels, once = scene.finder.find_labels(Xu, progress=tick)
+    states = scene.finder.find_batch(Xu[once])
+    keys = [s.key for s in states]
+    if len(set(keys)) < len(keys):  # pragma: no cover - find_labels is find_batch's keys
+        return group_states([states[j] for j in labels[inverse].tolist()])
+    return Observations(labels[inverse] if m < n else labels, keys, states)
 
 
 def observed_states(
@@ -130,33 +135,18 @@ def distinct_poses(X: FloatArray) -> tuple[IntArray, IntArray]:
 
 def group_states(states: Sequence[ContactState]) -> Observations:
     """Label each state by its key, in order of first appearance."""
-    grouper = StateGrouper()
-    labels = grouper.add(states)
-    return Observations(labels, list(grouper.index), grouper.first)
-
-
-class StateGrouper:
-    """Labels of contact states by key, in order of first appearance, fed in batches.
-
-    Keeps only the first state of each key (``first``) and the key index (``index``).
-    """
-
-    def __init__(self) -> None:
-        self.index: dict[StateKey, int] = {}
-        self.first: list[ContactState] = []
-
-    def add(self, states: Sequence[ContactState]) -> IntArray:
-        """Return the labels of ``states`` (new keys get the next labels)."""
-        labels = np.empty(len(states), dtype=np.int64)
-        known: dict[int, int] = {}  # id(state) -> label: a state repeated is keyed once
-        for i, s in enumerate(states):
-            k = known.get(id(s))
-            if k is None:
-                k = known[id(s)] = self.index.setdefault(s.key, len(self.index))
-                if k == len(self.first):
-                    self.first.append(s)
-            labels[i] = k
-        return labels
+    index: dict[StateKey, int] = {}
+    labels = np.empty(len(states), dtype=np.int64)
+    first: list[ContactState] = []
+    known: dict[int, int] = {}  # id(state) -> label: a state repeated is keyed once
+    for i, s in enumerate(states):
+        k = known.get(id(s))
+        if k is None:
+            k = known[id(s)] = index.setdefault(s.key, len(index))
+            if k == len(first):
+                first.append(s)
+        labels[i] = k
+    return Observations(labels, list(index), first)
 
 
 def _near_faces(poly: Polyhedron, P: FloatArray, threshold: float) -> BoolArray:
