@@ -9,15 +9,23 @@ searches a whole sequence of poses at once (:meth:`ContactFinder.find_batch`);
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from apo.constants import tol
+from apo.contact._arrays import _EMPTY_I
 from apo.contact.candidates import _candidates
 from apo.contact.classification import _classify, _elements
-from apo.contact.distance_tests import _by_frame, _edge_pairs, _near_features, _touching
+from apo.contact.distance_tests import (
+    _by_frame,
+    _edge_pairs,
+    _near_features,
+    _NearF,
+    _touching,
+)
 from apo.contact.elements import ContactState
 from apo.contact.model_data import _model_data, _ModelData
 from apo.contact.separating_normals import _cone_pairs
@@ -148,6 +156,61 @@ class ContactFinder:
             self._g, self._e, self.threshold, self.angle_tol, _check_pose(X_EG)[None], naive=True
         )[0]
 
+    def find_labels(
+        self,
+        X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> tuple[IntArray, IntArray]:
+        """Label the poses by the keys of their contact states, without building the states.
+
+        Two poses get the same label iff :meth:`find_batch` gives states with the same
+        ``key`` (the same element kinds and feature pairs) there. The search is that of
+        :meth:`find_batch` up to whether each pair of convex pieces has a separating normal;
+        the normals themselves, the contact points, the touching pairs and the element
+        objects are left out (what a long demonstration needs only at one frame per state:
+        ``find_batch(X[first])``).
+
+        Parameters
+        ----------
+        X_EG_seq : array_like, shape (N, 4, 4)
+            Poses of G in E's frame, metres.
+        progress : callable, optional
+            Called as ``progress(done, N)`` after each block of frames.
+
+        Returns
+        -------
+        labels : ndarray of int, shape (N,)
+            0, 1, ... in order of first appearance.
+        first : ndarray of int, shape (number of labels,)
+            The first pose of each label.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from apo.shapes import box
+        >>> cube = box([0.1, 0.1, 0.1], center=[0.0, 0.0, 0.05])
+        >>> finder = ContactFinder(cube, box([1.0, 1.0, 0.1], center=[0.0, 0.0, -0.05]))
+        >>> X = np.stack([np.eye(4)] * 3)
+        >>> X[1, 2, 3] = 0.5  # lifted
+        >>> [v.tolist() for v in finder.find_labels(X)]
+        [[0, 1, 0], [0, 1]]
+        """
+        X = _check_poses(X_EG_seq)
+        g, e = self._g, self._e
+        step = max(1, _BATCH_PRIMITIVES // (g.nv + e.nv + g.ne))
+        frames: list[IntArray] = []
+        codes: list[IntArray] = []
+        for a in range(0, len(X), step):
+            f, c = _element_codes(g, e, self.threshold, self.angle_tol, X[a : a + step])
+            frames.append(f + a)
+            codes.append(c)
+            if progress is not None:
+                progress(min(a + step, len(X)), len(X))
+        if not frames:
+            return _EMPTY_I, _EMPTY_I
+        return _group_sets(np.concatenate(frames), np.concatenate(codes), len(X))
+
     # ---------------------------------------------------------------------------------------
 
 
@@ -177,23 +240,42 @@ def _piece_pairs(
     return gs[rep] + o // ec[rep], es[rep] + o % ec[rep], rep
 
 
-def _find_frames(
-    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray, *, naive: bool
-) -> list[ContactState]:
-    """Contact states at poses ``X`` (F, 4, 4); every stage is vectorised over frames.
+@dataclass(frozen=True)
+class _Work:
+    """The candidate pairs of convex pieces of a block of frames (stages up to the cones).
 
-    Stages: broad phase (bounding boxes), distance tests (features near each vertex, edge
-    pairs, touching pairs), candidate features, pairs of convex pieces, separating normals,
-    element classification and contact points.
+    ``active`` are the frames (indices into the block) that passed the broad phase, ``R``,
+    ``t`` and ``VG`` their rotations, translations and G's vertices in E; each work item
+    pairs G's piece ``pg`` with E's piece ``pe`` for candidate ``rep`` at frame ``wfr``
+    (index into ``active``), with the element kind and refined features of
+    :func:`_classify`.
     """
-    n_frames = len(X)
-    states = [ContactState((), frozenset())] * n_frames
-    active = np.arange(n_frames) if naive else _broad_phase(g, e, d, X)
+
+    active: IntArray
+    R: FloatArray
+    t: FloatArray
+    VG: FloatArray
+    near_g: _NearF
+    near_e: _NearF
+    ee: tuple[IntArray, IntArray, IntArray]
+    pg: IntArray
+    pe: IntArray
+    wfr: IntArray
+    classified: tuple[IntArray, IntArray, IntArray, IntArray, IntArray]
+
+
+def _work(
+    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray, *, naive: bool
+) -> _Work | None:
+    """Broad phase, distance tests, candidate features and their pairs of pieces at ``X``.
+
+    None when no frame of the block passes the broad phase.
+    """
+    active = np.arange(len(X)) if naive else _broad_phase(g, e, d, X)
     if len(active) == 0:
-        return states
+        return None
     R, t = X[active, :3, :3], X[active, :3, 3]
-    n_act = len(active)
-    limit = _DENSE_LIMIT * (_BATCH_DENSE_FACTOR if n_act > 1 else 1)
+    limit = _DENSE_LIMIT * (_BATCH_DENSE_FACTOR if len(active) > 1 else 1)
     VG = g.V @ R.transpose(0, 2, 1) + t[:, None, :]  # G's vertices in E
     VE_G = (e.V[None, :, :] - t[:, None, :]) @ R  # E's in G
     near_g = _by_frame(
@@ -203,26 +285,89 @@ def _find_frames(
         _near_features(g, VE_G.reshape(-1, 3), d, naive=naive, dense_limit=limit), e.nv
     )
     ee = _edge_pairs(g, e, VG, R, t, d, naive=naive, limit=limit)
-    touching = _touching(g, e, near_g, near_e, ee, n_act)
     fr, gkind, gcode, ekind, ecode = _candidates(g, e, angle_tol, near_g, near_e, ee, R)
     pg, pe, rep = _piece_pairs(g, e, gcode, ecode)
-    wfr = fr[rep]
-    count, rays, extra = _cone_pairs(g, e, angle_tol, pg, pe, R[wfr], naive=naive)
-    kind, fa_k, fa_i, fb_k, fb_i = _classify(
-        g, e, pg, pe, gkind[rep], gcode[rep], ekind[rep], ecode[rep]
-    )
+    classified = _classify(g, e, pg, pe, gkind[rep], gcode[rep], ekind[rep], ecode[rep])
+    return _Work(active, R, t, VG, near_g, near_e, ee, pg, pe, fr[rep], classified)
+
+
+def _find_frames(
+    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray, *, naive: bool
+) -> list[ContactState]:
+    """Contact states at poses ``X`` (F, 4, 4); every stage is vectorised over frames.
+
+    Stages (:func:`_work`): broad phase (bounding boxes), distance tests (features near each
+    vertex, edge pairs), candidate features, pairs of convex pieces; then the touching
+    pairs, separating normals, element classification and contact points.
+    """
+    n_frames = len(X)
+    states = [ContactState((), frozenset())] * n_frames
+    w = _work(g, e, d, angle_tol, X, naive=naive)
+    if w is None:
+        return states
+    n_act = len(w.active)
+    touching = _touching(g, e, w.near_g, w.near_e, w.ee, n_act)
+    count, rays, extra = _cone_pairs(g, e, angle_tol, w.pg, w.pe, w.R[w.wfr], naive=naive)
+    kind, fa_k, fa_i, fb_k, fb_i = w.classified
     valid = (kind >= 0) & (count > 0)
     per_frame = _elements(
         g,
         e,
         tol.ray_merge_factor * angle_tol,
-        (wfr, R, t, VG, n_act),
+        (w.wfr, w.R, w.t, w.VG, n_act),
         (kind, fa_k, fa_i, fb_k, fb_i, valid),
         (count, rays, extra),
     )
-    for k, f in enumerate(active.tolist()):
+    for k, f in enumerate(w.active.tolist()):
         states[f] = ContactState(per_frame[k], touching[k])
     return states
+
+
+def _element_codes(
+    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray
+) -> tuple[IntArray, IntArray]:
+    """(frame, element code) of every element at poses ``X``, sorted, without duplicates.
+
+    The code ``(kind * g.n_all + G primitive) * e.n_all + E primitive`` stands for the
+    element's key; the elements are those of :func:`_find_frames`, found by the same stages
+    up to whether each pair of pieces has a separating normal (``count > 0``), without the
+    rays themselves, the contact points and the touching pairs.
+    """
+    w = _work(g, e, d, angle_tol, X, naive=False)
+    if w is None:
+        return _EMPTY_I, _EMPTY_I
+    count, _, _ = _cone_pairs(
+        g, e, angle_tol, w.pg, w.pe, w.R[w.wfr], naive=False, counts_only=True
+    )
+    kind, fa_k, fa_i, fb_k, fb_i = w.classified
+    ok = np.flatnonzero((kind >= 0) & (count > 0))
+    code = (kind[ok] * g.n_all + g.offset[fa_k[ok]] + fa_i[ok]) * e.n_all
+    code += e.offset[fb_k[ok]] + fb_i[ok]
+    frame = w.active[w.wfr[ok]]
+    order = np.lexsort((code, frame))
+    frame, code = frame[order], code[order]
+    new = np.ones(len(code), dtype=bool)
+    new[1:] = (frame[1:] != frame[:-1]) | (code[1:] != code[:-1])
+    return frame[new], code[new]
+
+
+def _group_sets(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntArray]:
+    """Label ``n`` frames by their sets of codes (rows sorted by frame, then code).
+
+    Returns each frame's label (0, 1, ... in order of first appearance) and the first frame
+    of each label.
+    """
+    cnt = np.bincount(frame, minlength=n)
+    width = int(cnt.max(initial=0))
+    M = np.full((n, width + 1), -1, dtype=np.int64)
+    M[:, 0] = cnt
+    slot = np.arange(len(frame)) - (np.cumsum(cnt) - cnt)[frame]
+    M[frame, slot + 1] = code
+    _, first, inverse = np.unique(M, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[inverse.ravel()], first[order]
 
 
 def find_contacts(

@@ -187,13 +187,16 @@ def _arc_rays_batch(
     R: FloatArray,
     sin_tol: float,
     merge_angle: float,
+    *,
+    counts_only: bool = False,
 ) -> tuple[IntArray, FloatArray]:
     """Vectorised rank-1 case of :func:`_separating_rays` and :func:`_snap_rays`.
 
     Each pair (G piece ``pg[k]`` at rotation ``R[k]``, E piece ``pe[k]``) has exactly one
     lineality direction (an edge on one side, a pointed cone on the other). Same result as
     the scalar code up to rounding. Returns the number of rays (0, 1 or 2) of each pair and
-    the rays, shape (n, 2, 3), in E.
+    the rays, shape (n, 2, 3), in E; with ``counts_only``, 1 for each pair with a ray and no
+    rays.
     """
     n = len(pg)
     rows, from_e = _ineq_rows(PG, PE, pg, pe, R)
@@ -226,6 +229,8 @@ def _arc_rays_batch(
     mean = (ok[:, None, :].astype(np.float64) @ cand)[:, 0]
     nm = np.hypot(mean[:, 0], mean[:, 1])
     good = ok.any(axis=1) & (nm >= tol.ray_sum_norm)
+    if counts_only:
+        return good.astype(np.int64), np.zeros((n, 2, 3))
     mean /= np.where(good, nm, 1.0)[:, None]
     ang = np.arctan2(
         cand[:, :, 1] * mean[:, None, 0] - cand[:, :, 0] * mean[:, None, 1],
@@ -308,6 +313,8 @@ def _edge_edge_rays_batch(
     R: FloatArray,
     sin_tol: float,
     merge_angle: float,
+    *,
+    counts_only: bool = False,
 ) -> tuple[IntArray, FloatArray, BoolArray]:
     """Vectorised rank-2 case of :func:`_separating_rays` for pairs of edge pieces.
 
@@ -339,8 +346,30 @@ def _edge_edge_rays_batch(
     count = (ok_plus | ok_minus).astype(np.int64)
     rays = np.zeros((n, 2, 3))
     rays[:, 0] = np.where(ok_minus[:, None], -u, u)
-    count, rays = _snap_batch(PG, PE, pg, pe, R, rays, count, merge_angle)
+    if not counts_only:
+        count, rays = _snap_batch(PG, PE, pg, pe, R, rays, count, merge_angle)
     return np.where(solved, count, 0), rays, solved
+
+
+def _pointed_candidates(
+    PG: _Pieces, PE: _Pieces, pg: IntArray, pe: IntArray, R: FloatArray, sin_tol: float
+) -> tuple[FloatArray, BoolArray, IntArray]:
+    """Candidate rays of the rank-0 case for all pairs at once (both pieces pointed).
+
+    The cross products of pairs of rows, both signs, shape (n, c, 3); which are on the right
+    side of every row (n, c); and their priorities (c,) for :func:`_dedupe` (rows of E's).
+    """
+    rows, from_e_b = _ineq_rows(PG, PE, pg, pe, R)
+    from_e = from_e_b.astype(np.int64)
+    iu, ju = np.triu_indices(rows.shape[1], 1)  # padding rows are zero: crosses dropped
+    cr = np.cross(rows[:, iu], rows[:, ju])
+    nc = np.linalg.norm(cr, axis=2)
+    keep = nc > sin_tol
+    cr = cr / np.where(keep, nc, 1.0)[:, :, None]
+    prio = np.tile(from_e[iu] + from_e[ju], 2)
+    cr = np.concatenate([cr, -cr], axis=1)
+    ok = np.tile(keep, 2) & np.all((cr @ rows.transpose(0, 2, 1)) >= -sin_tol, axis=2)
+    return cr, ok, prio
 
 
 def _pointed_rays_batch(
@@ -354,24 +383,13 @@ def _pointed_rays_batch(
 ) -> list[FloatArray]:
     """Vectorised rank-0 case of :func:`_separating_rays`: both pieces pointed (no lineality).
 
-    The candidate rays (cross products of pairs of rows, both signs, kept when on the right
-    side of every row) are found for all pairs at once; the greedy merge (:func:`_dedupe`)
-    and the snapping (:func:`_snap_rays`) of each pair's few candidates are the scalar ones.
-    Returns the rays of each pair before snapping, in E.
+    The candidate rays (:func:`_pointed_candidates`) are found for all pairs at once; the
+    greedy merge (:func:`_dedupe`) and the snapping (:func:`_snap_rays`) of each pair's few
+    candidates are the scalar ones. Returns the rays of each pair before snapping, in E.
     """
-    n = len(pg)
-    rows, from_e_b = _ineq_rows(PG, PE, pg, pe, R)
-    from_e = from_e_b.astype(np.int64)
-    iu, ju = np.triu_indices(rows.shape[1], 1)  # padding rows are zero: crosses dropped
-    cr = np.cross(rows[:, iu], rows[:, ju])
-    nc = np.linalg.norm(cr, axis=2)
-    keep = nc > sin_tol
-    cr = cr / np.where(keep, nc, 1.0)[:, :, None]
-    prio = np.tile(from_e[iu] + from_e[ju], 2)
-    cr = np.concatenate([cr, -cr], axis=1)
-    ok = np.tile(keep, 2) & np.all((cr @ rows.transpose(0, 2, 1)) >= -sin_tol, axis=2)
+    cr, ok, prio = _pointed_candidates(PG, PE, pg, pe, R, sin_tol)
     out = []
-    for i in range(n):
+    for i in range(len(pg)):
         sel = ok[i]
         out.append(_dedupe(cr[i][sel], merge_angle, prio[sel]) if sel.any() else _EMPTY_3)
     return out
@@ -408,6 +426,8 @@ def _half_space_rays(
     side: str,
     sin_tol: float,
     merge_angle: float,
+    *,
+    counts_only: bool = False,
 ) -> tuple[IntArray, FloatArray]:
     """Vectorised pairs where one piece is a half-space: its normal is the only candidate.
 
@@ -436,7 +456,7 @@ def _half_space_rays(
     k = np.flatnonzero(~bad)
     count[k] = 1
     rays[k, 0] = nrm[k]
-    if side == "g" and len(k):
+    if side == "g" and len(k) and not counts_only:
         count[k], rays[k] = _snap_batch(PG, PE, pg[k], pe[k], R[k], rays[k], count[k], merge_angle)
     return count, rays
 
@@ -450,57 +470,28 @@ def _cone_pairs(
     R: FloatArray,
     *,
     naive: bool,
+    counts_only: bool = False,
 ) -> tuple[IntArray, FloatArray, dict[int, FloatArray]]:
     """Separating normals of each pair of pieces (G piece ``pg[k]`` at ``R[k]``, ``pe[k]``).
 
     Returns the number of rays of each pair, the rays (n, 2, 3) of the pairs solved
     vectorised, and the rays of the others (by pair index). The naive search solves every
-    pair with the scalar :func:`_cone_pair_rays`.
+    pair with the scalar :func:`_cone_pair_rays`. With ``counts_only`` the count is only
+    right as to whether it is zero (the rays of the vectorised cases are not snapped nor
+    merged, which never empties a cone), and the rays are left out.
     """
-    PG, PE = g.pieces, e.pieces
     sin_tol = math.sin(angle_tol)
     merge = tol.ray_merge_factor * angle_tol
     n = len(pg)
     count = np.zeros(n, dtype=np.int64)
     rays = np.zeros((n, 2, 3))
     extra: dict[int, FloatArray] = {}
-    lg, le = PG.nlin[pg], PE.nlin[pe]
     if naive:
         scalar = np.ones(n, dtype=bool)
     else:
-        half_e = le == 2  # E's piece is a half-space: its outward normal (exact in E)
-        half_g = ~half_e & (lg == 2)  # G's piece is one: minus its outward normal, snapped
-        arc = (lg + le) == 1
-        edges = (lg == 1) & (le == 1)
-        pointed = (lg == 0) & (le == 0)
-        scalar = ~(half_e | half_g | arc | edges | pointed)
-        for sel, side in ((half_e, "e"), (half_g, "g")):
-            k = np.flatnonzero(sel)
-            if len(k):
-                count[k], rays[k] = _half_space_rays(
-                    PG, PE, pg[k], pe[k], R[k], side, sin_tol, merge
-                )
-        k = np.flatnonzero(arc)
-        if len(k):
-            count[k], rays[k] = _arc_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge)
-        k = np.flatnonzero(edges)
-        if len(k):
-            c, r, solved = _edge_edge_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge)
-            count[k], rays[k] = c, r
-            scalar[k[~solved]] = True
-        k = np.flatnonzero(pointed)
-        if len(k):
-            for i, r in zip(
-                k.tolist(),
-                _pointed_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge),
-                strict=True,
-            ):
-                if len(r):
-                    r = _snap_rays(
-                        r, g.piece_list[int(pg[i])], e.piece_list[int(pe[i])], R[i], merge
-                    )
-                    count[i] = len(r)
-                    extra[i] = r
+        scalar = _vectorised_cases(
+            g, e, pg, pe, R, (sin_tol, merge), (count, rays, extra), counts_only
+        )
     for i in np.flatnonzero(scalar).tolist():
         r = _cone_pair_rays(
             g.piece_list[int(pg[i])], e.piece_list[int(pe[i])], R[i], sin_tol, merge
@@ -509,3 +500,58 @@ def _cone_pairs(
             count[i] = len(r)
             extra[i] = r
     return count, rays, extra
+
+
+def _vectorised_cases(
+    g: _ModelData,
+    e: _ModelData,
+    pg: IntArray,
+    pe: IntArray,
+    R: FloatArray,
+    tols: tuple[float, float],
+    out: tuple[IntArray, FloatArray, dict[int, FloatArray]],
+    counts_only: bool,
+) -> BoolArray:
+    """Solve the common cases of :func:`_cone_pairs` into ``out`` (count, rays, extra).
+
+    Returns the mask of the pairs left to the scalar code.
+    """
+    PG, PE = g.pieces, e.pieces
+    sin_tol, merge = tols
+    count, rays, extra = out
+    lg, le = PG.nlin[pg], PE.nlin[pe]
+    half_e = le == 2  # E's piece is a half-space: its outward normal (exact in E)
+    half_g = ~half_e & (lg == 2)  # G's piece is one: minus its outward normal, snapped
+    arc = (lg + le) == 1
+    edges = (lg == 1) & (le == 1)
+    pointed = (lg == 0) & (le == 0)
+    scalar: BoolArray = ~(half_e | half_g | arc | edges | pointed)
+    opt = {"counts_only": counts_only}
+    for sel, side in ((half_e, "e"), (half_g, "g")):
+        k = np.flatnonzero(sel)
+        if len(k):
+            count[k], rays[k] = _half_space_rays(
+                PG, PE, pg[k], pe[k], R[k], side, sin_tol, merge, **opt
+            )
+    k = np.flatnonzero(arc)
+    if len(k):
+        count[k], rays[k] = _arc_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge, **opt)
+    k = np.flatnonzero(edges)
+    if len(k):
+        c, r, solved = _edge_edge_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge, **opt)
+        count[k], rays[k] = c, r
+        scalar[k[~solved]] = True
+    k = np.flatnonzero(pointed)
+    if len(k) and counts_only:
+        count[k] = _pointed_candidates(PG, PE, pg[k], pe[k], R[k], sin_tol)[1].any(axis=1)
+    elif len(k):
+        for i, r in zip(
+            k.tolist(),
+            _pointed_rays_batch(PG, PE, pg[k], pe[k], R[k], sin_tol, merge),
+            strict=True,
+        ):
+            if len(r):
+                r = _snap_rays(r, g.piece_list[int(pg[i])], e.piece_list[int(pe[i])], R[i], merge)
+                count[i] = len(r)
+                extra[i] = r
+    return scalar

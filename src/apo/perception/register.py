@@ -48,6 +48,7 @@ __all__ = [
     "ModelCloud",
     "Registration",
     "SurfaceCheck",
+    "evaluate",
     "free_space_violation",
     "initialise",
     "model_cloud",
@@ -55,7 +56,6 @@ __all__ = [
     "penetration",
     "register",
     "register_projective",
-    "scored",
     "surface_check",
 ]
 
@@ -593,14 +593,14 @@ def register(
         kernel = _kernel(o3d, loss, inlier_distance if last else dist / 2)
         est = reg.TransformationEstimationPointToPlane(kernel)
         T = reg.registration_icp(src, target, dist, T, est, criteria).transformation
-    return scored(
+    return evaluate(
         P, model, invert_pose(orthonormalised(np.asarray(T))), inlier_distance=inlier_distance,
         depth=depth, camera=camera, obstacle=obstacle,
         free_space_tolerance=free_space_tolerance, occluder=occluder,
     )  # fmt: skip
 
 
-def scored(
+def evaluate(
     points_C: npt.ArrayLike,
     model: ModelCloud,
     X_CM: npt.ArrayLike,
@@ -612,19 +612,17 @@ def scored(
     free_space_tolerance: float = 0.005,
     occluder: npt.ArrayLike | None = None,
 ) -> Registration:
-    """Score a pose of a model against observed points (and the depth): a :class:`Registration`.
+    """Score a pose of a model against observed points (and the depth image): a Registration.
 
-    The fitness and RMS residual of the points (distances to the model's dense samples),
-    the surface check (with ``depth`` and ``camera``) and the penetration (with
-    ``obstacle``); arguments as :func:`register`'s.
+    The fitness and RMS residual against the dense samples; with ``depth`` and ``camera``,
+    the surface check (the confidence); with ``obstacle``, the penetration. The parameters
+    are those of :func:`register`.
     """
     P = np.asarray(points_C, dtype=np.float64)
     X = orthonormalised(X_CM)
-    if len(P) == 0:
-        return Registration(X, 0.0, np.inf, 1.0, 0)
     plane, point = model.residuals(transform_points(invert_pose(X), P))
     inlier = (plane <= inlier_distance) & (point <= inlier_distance + 2 * model.spacing)
-    fitness = float(np.count_nonzero(inlier)) / len(P)
+    fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
     rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
     surface = None
     if depth is not None and camera is not None:
@@ -657,7 +655,7 @@ def register_projective(
     The frame-to-frame registration: the model rendered at the pose pairs each object pixel
     (``mask``) of the depth window with the face visible there. The final Tukey scale of a
     pixel is ``max(inlier_distance, 4.685 sigma)``; the result is scored as :func:`register`'s
-    (:func:`scored`, on ``points_C``, the object's observed points).
+    (:func:`evaluate`, on ``points_C``, the object's observed points).
 
     Parameters
     ----------
@@ -687,7 +685,7 @@ def register_projective(
         start_scale=start_scale, iterations=iterations, occluder=occluder,
         constraint=constraint,
     )  # fmt: skip
-    return scored(
+    return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
         obstacle=obstacle, free_space_tolerance=free_space_tolerance, occluder=occluder,
     )  # fmt: skip
@@ -770,6 +768,14 @@ def distinct_up_to_symmetry(
     return kept
 
 
+COARSE_POINTS = 150
+"""Points (evenly spread) on which every candidate of the global search is advanced first."""
+REFINE_POINTS = 3000
+"""Points (evenly spread) on which the global search's best candidates are refined."""
+CANDIDATES = 32
+"""Distinct candidates of the global search scored on the depth image."""
+
+
 def initialise(
     points_C: npt.ArrayLike,
     model: ModelCloud,
@@ -779,7 +785,7 @@ def initialise(
     inlier_distance: float = 0.002,
     loss: str = "tukey",
     max_points: int = 400,
-    keep: int = 6,
+    keep: int = 3,
     seed: int | np.random.Generator | None = 0,
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
@@ -826,46 +832,51 @@ def initialise(
     Registration
         The most confident candidate (any of its symmetric twins).
     """
+    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
         return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
     rng = np.random.default_rng(seed)
-    sub = P if len(P) <= max_points else P[rng.choice(len(P), max_points, replace=False)]
+    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
+    sub = voxel_subsample(P, max_points, rng)
+    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
+    score: dict[str, Any] = {"inlier_distance": inlier_distance, "depth": depth, "camera": camera,
+             "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
+             "occluder": occluder}  # fmt: skip
+    # Every candidate orientation about the points' centroid pushed back along the ray (the
+    # visible surface is nearer than the model's centroid: a sixth and a third of its size).
     c = P.mean(0)
     ray = c / np.linalg.norm(c)
-    scored: list[Registration] = []
-    # The visible surface is nearer than the model's centroid: try it a sixth and a third of
-    # the model's size behind the points.
-    for depth_offset in (model.diameter / 6, model.diameter / 3):
-        centre = c + ray * depth_offset
-        for R in distinct_up_to_symmetry(_candidate_rotations(P, model), symmetry_rotations):
+    rotations = distinct_up_to_symmetry(_candidate_rotations(P, model), symmetry_rotations)
+    starts = []
+    for offset in (model.diameter / 6, model.diameter / 3):
+        for R in rotations:
             X = np.eye(4)
             X[:3, :3] = R
-            X[:3, 3] = centre - R @ model.centroid
-            scored.append(
-                register(
-                    sub, model, X, inlier_distance=inlier_distance, loss=loss, iterations=12,
-                    depth=depth, camera=camera, obstacle=obstacle, dense=False,
-                    free_space_tolerance=free_space_tolerance, occluder=occluder,
-                )
-            )  # fmt: skip
-    scored.sort(key=lambda r: -r.confidence)
-    best: Registration | None = None
-    for cand in scored[:keep]:
-        r = register(
-            P,
-            model,
-            cand.X_CM,
-            max_distance=model.diameter / 12,
-            inlier_distance=inlier_distance,
-            loss=loss,
-            depth=depth,
-            camera=camera,
-            obstacle=obstacle,
-            free_space_tolerance=free_space_tolerance,
-            occluder=occluder,
-        )
-        if best is None or r.confidence > best.confidence:
-            best = r
-    assert best is not None
-    return best
+            X[:3, 3] = c + ray * offset - R @ model.centroid
+            starts.append(invert_pose(X))
+    T = np.stack(starts)
+    d0 = model.diameter / 4
+    for dist in (d0, d0 / 3):  # coarse: every candidate, few points, sparse samples
+        dist = max(dist, 2 * inlier_distance)
+        T = batch_icp(few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss)
+    # The best distinct results on more points; then scored on the depth image.
+    order = np.argsort(-inlier_fraction(sub, model, T, 2 * inlier_distance), kind="stable")
+    T = T[distinct_poses(T[order], model, symmetry_rotations, limit=CANDIDATES)]
+    dist = max(d0 / 9, 2 * inlier_distance)
+    T = batch_icp(sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss)
+    scored = [evaluate(sub, model, invert_pose(t), **score) for t in T]
+    ranked = sorted(range(len(T)), key=lambda k: -scored[k].confidence)[:keep]
+    # The most confident, on all points (at most REFINE_POINTS, evenly spread), dense samples.
+    T = T[ranked]
+    d1 = model.diameter / 12
+    for k, dist in enumerate((d1, d1 / 3, d1 / 9)):
+        dist = max(dist, 2 * inlier_distance)
+        last = k == 2
+        T = batch_icp(
+            full, model, T, distance=dist, scale=inlier_distance if last else dist / 2,
+            iterations=30, dense=last, loss=loss,
+        )  # fmt: skip
+    best = [evaluate(full, model, invert_pose(t), **score) for t in T]
+    return max(best, key=lambda r: (r.confidence, r.quality))

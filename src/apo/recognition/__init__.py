@@ -6,7 +6,8 @@ A package of the pipeline's stages, in the order they run (``docs/recognition.md
 - :mod:`~apo.recognition.contacts`: the contact state observed at every frame;
 - :mod:`~apo.recognition.distances`: feature distances of contact elements over frames;
 - :mod:`~apo.recognition.costs`: the cost of every candidate state at every frame;
-- :mod:`~apo.recognition.decoding`: Viterbi segmentation (unconstrained, then constrained);
+- :mod:`~apo.recognition.decoding`: Viterbi decoders (whole sequence, or fed block by block);
+- :mod:`~apo.recognition.segmentation`: the two segmentation passes, block by block;
 - :mod:`~apo.recognition.candidates`: one candidate analysed (corrected pose, closure, DOF);
 - :mod:`~apo.recognition.bridges`: states between two that cannot follow each other;
 - :mod:`~apo.recognition.analysis`: which candidates to analyse, direct-transition tests;

@@ -75,11 +75,14 @@ def analyse(
     scene: Scene,
     an: Analysis,
     observed: Observations,
-    emission: FloatArray,
+    own: FloatArray,
     path0: IntArray,
     ks: Iterable[int],
 ) -> None:
     """Analyse candidates ``ks``, then test direct transitions between near analysed pairs.
+
+    ``own`` is the cost of each frame's observed state there, shape (N,) (a state's best
+    frames are the cheapest of those where it was observed).
 
     A pair is tested when both are observed (or, where a frame's observed state is not
     analysed, chosen by ``path0``) within ``window`` frames of each other.
@@ -93,7 +96,7 @@ def analyse(
                 k,
                 an.keys[k],
                 observed.states[k],
-                emission[:, k],
+                own,
                 neighbours=[observed.states[j] for j in neighbours(obs, path0, k)],
             )
     done = np.array([c is not None for c in an.candidates])
@@ -122,18 +125,19 @@ def neighbours(obs: IntArray, path0: IntArray, k: int) -> list[int]:
 
 
 def analyse_needed(
-    scene: Scene, observed: Observations, emission: FloatArray, path0: IntArray
+    scene: Scene, observed: Observations, own: FloatArray, path0: IntArray
 ) -> Analysis:
     """Analyse what the segmentation needs: shortlist, states around gaps, bridges.
 
-    ``path0`` is the unconstrained segmentation; the states it uses are the shortlist.
+    ``path0`` is the unconstrained segmentation; the states it uses are the shortlist;
+    ``own`` the cost of each frame's observed state (:func:`analyse`).
     """
     an = Analysis.start(observed.keys)
     shortlist = sorted({int(k) for k in np.unique(path0)})
-    analyse(scene, an, observed, emission, path0, shortlist)
+    analyse(scene, an, observed, own, path0, shortlist)
     extra = states_around_gaps(scene, an, observed.labels, path0) - set(shortlist)
     if extra:
-        analyse(scene, an, observed, emission, path0, sorted(extra))
+        analyse(scene, an, observed, own, path0, sorted(extra))
     add_bridges(scene, an, path0)
     return an
 

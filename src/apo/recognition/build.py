@@ -5,7 +5,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from apo.recognition.types import (
 from apo.spatial import invert_pose
 from apo.task import Element, Rejected, State, SubSkill, Transition, state_letters
 from apo.transitions import analyze_transition
+
+if TYPE_CHECKING:
+    from apo.recognition.segmentation import Segmentation
 
 __all__ = [
     "build_states",
@@ -127,10 +130,11 @@ def rejected_runs(
     keys: list[StateKey],
     candidates: Sequence[CandidateState | None],
     feasible: BoolArray,
-    emission: FloatArray,
+    seg: Segmentation,
     w: SegmentationCosts,
 ) -> list[Rejected]:
     """Observed runs the segmentation replaced, with the reason."""
+    col = {int(k): c for c, k in enumerate(seg.columns)}
     run_of = np.empty(len(path), dtype=np.int64)
     for r, (a, b) in enumerate(runs):
         run_of[a : b + 1] = r
@@ -163,8 +167,10 @@ def rejected_runs(
             if not cand.converged:
                 reasons.append("pose correction converged at no frame of this state")
             if not reasons:
-                kept = float(emission[a : b + 1, k].sum())
-                chosen = float(emission[np.arange(a, b + 1), path[a : b + 1]].sum())
+                cost = seg.costs[a : b + 1]
+                kept = float(cost[:, col[k]].sum())
+                taken_cols = [col[int(p)] for p in path[a : b + 1]]
+                chosen = float(cost[np.arange(b + 1 - a), taken_cols].sum())
                 reasons.append(
                     f"costlier than the neighbouring states ({kept:.2f} + switches "
                     f"{w.switch:g} each vs {chosen:.2f})"

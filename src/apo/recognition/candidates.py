@@ -93,8 +93,9 @@ def analyse_candidate(
     """Correct the best observed frames of candidate ``k``; analyse it at the first success.
 
     ``labels`` are the observed state of each frame, ``cost`` the candidate's cost at each
-    frame: the ``tries`` cheapest frames where it was observed are corrected. If none
-    converges, the other contact hypotheses near those frames are tried
+    frame (read where ``labels == k`` only): the ``tries`` cheapest frames where it was
+    observed are corrected. If none converges, the other contact hypotheses near those
+    frames are tried
     (:func:`apo.recognition.hypotheses.rescue`, with the states observed before and after,
     ``neighbours``); the state is then the one that holds at the rescued pose.
     """

@@ -52,8 +52,31 @@ class Observations:
 def observe(
     scene: Scene, *, memoize: bool = False, progress: Progress | None = None
 ) -> Observations:
-    """Find the contact state at every frame and group the frames by distinct state."""
-    return group_states(observed_states(scene, memoize=memoize, progress=progress))
+    """Find the contact state at every frame and group the frames by distinct state.
+
+    The frames are labelled by the keys of their states
+    (:meth:`apo.contact.ContactFinder.find_labels`: the search without the normals, points
+    and touching pairs), and the whole state is found at the first frame of each label
+    only: the same observations as :func:`group_states` of :func:`observed_states`, whose
+    states of later frames of a label would be dropped. A pose that repeats an earlier
+    one bit for bit is searched once (:func:`distinct_poses`).
+    """
+    if memoize:
+        return group_states(observed_states(scene, memoize=True, progress=progress))
+    X, n = scene.X, scene.n
+    first, inverse = distinct_poses(X)
+    Xu, m = X[first], len(first)
+
+    def tick(done: int, _total: int) -> None:
+        if progress is not None:
+            progress(n if done >= m else done * n // m, n)
+
+    labels, once = scene.finder.find_labels(Xu, progress=tick)
+    states = scene.finder.find_batch(Xu[once])
+    keys = [s.key for s in states]
+    if len(set(keys)) < len(keys):  # pragma: no cover - find_labels is find_batch's keys
+        return group_states([states[j] for j in labels[inverse].tolist()])
+    return Observations(labels[inverse] if m < n else labels, keys, states)
 
 
 def observed_states(

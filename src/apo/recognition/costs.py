@@ -69,6 +69,7 @@ def candidate_costs(
     bridges: Sequence[Bridge],
     obs: IntArray,
     w: SegmentationCosts,
+    start: int = 0,
 ) -> FloatArray:
     """Cost of every analysed candidate at every frame, shape (N, K).
 
@@ -76,12 +77,15 @@ def candidate_costs(
     no more at its two boundary frames than the observed state it joins there (it happens
     between them and holds that state's contacts too); a candidate whose correction
     converged at no frame costs ``fail`` more per frame; one not analysed is excluded.
+    ``dists`` and ``obs`` may be a block of frames starting at frame ``start`` (the bridges'
+    boundary frames are frame numbers of the whole sequence).
     """
     emission = emission_costs(dists, keys, [s.touching for s in states], obs, w)
     k_obs = len(keys) - len(bridges)
     for b, (_cand, (f1, f2), (k1, k2)) in enumerate(bridges, start=k_obs):
-        emission[f1, b] = min(emission[f1, b], emission[f1, k1])
-        emission[f2, b] = min(emission[f2, b], emission[f2, k2])
+        for f, k in ((f1 - start, k1), (f2 - start, k2)):
+            if 0 <= f < len(obs):
+                emission[f, b] = min(emission[f, b], emission[f, k])
     unusable = np.array([c is None for c in candidates])
     failed = np.array([c is not None and not c.converged for c in candidates])
     out: FloatArray = emission + w.fail * failed[None, :] + np.where(unusable, np.inf, 0.0)[None, :]

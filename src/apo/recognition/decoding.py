@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from apo.recognition.types import BoolArray, FloatArray, IntArray
 
 __all__ = [
+    "BLOCK_FRAMES",
+    "UniformViterbi",
+    "Viterbi",
     "constrained_path",
     "near_pairs",
     "reachable",
@@ -46,21 +50,10 @@ def viterbi(emission: FloatArray, transition: FloatArray) -> tuple[IntArray, flo
     >>> path.tolist(), cost
     ([0, 0, 0], 3.0)
     """
-    n, k = emission.shape
-    back = np.empty((n, k), dtype=np.int64)
-    acc = emission[0].copy()
-    back[0] = np.arange(k)
-    for t in range(1, n):
-        tot = acc[:, None] + transition
-        arg = np.argmin(tot, axis=0)
-        back[t] = arg
-        acc = tot[arg, np.arange(k)] + emission[t]
-    path = np.empty(n, dtype=np.int64)
-    path[-1] = int(np.argmin(acc))
-    cost = float(acc[path[-1]])
-    for t in range(n - 1, 0, -1):
-        path[t - 1] = back[t, path[t]]
-    return path, cost
+    dec = Viterbi(transition)
+    for a in range(0, len(emission), BLOCK_FRAMES):
+        dec.feed(emission[a : a + BLOCK_FRAMES])
+    return dec.path()
 
 
 def viterbi_uniform(emission: FloatArray, switch: float) -> IntArray:
@@ -68,21 +61,119 @@ def viterbi_uniform(emission: FloatArray, switch: float) -> IntArray:
 
     Equivalent to :func:`viterbi` with ``transition = switch`` off the diagonal.
     """
-    n, k = emission.shape
-    back = np.empty((n, k), dtype=np.int64)
-    acc = emission[0].copy()
-    back[0] = np.arange(k)
-    ar = np.arange(k)
-    for t in range(1, n):
-        j = int(np.argmin(acc))
-        move = acc[j] + switch < acc
-        back[t] = np.where(move, j, ar)
-        acc = np.where(move, acc[j] + switch, acc) + emission[t]
-    path = np.empty(n, dtype=np.int64)
-    path[-1] = int(np.argmin(acc))
-    for t in range(n - 1, 0, -1):
-        path[t - 1] = back[t, path[t]]
-    return path
+    dec = UniformViterbi(emission.shape[1], switch)
+    for a in range(0, len(emission), BLOCK_FRAMES):
+        dec.feed(emission[a : a + BLOCK_FRAMES])
+    return dec.path()[0]
+
+
+#: Frames per block of the block-wise stages (costs, decoding, ``frames.csv``): their
+#: working arrays are ``BLOCK_FRAMES x states`` whatever the length of the demonstration.
+BLOCK_FRAMES = 4096
+
+
+def _small_int(k: int) -> type[np.signedinteger]:
+    """Return the smallest signed integer type holding ``0 .. k - 1`` (back-pointers)."""
+    return np.int8 if k <= 127 else np.int16 if k <= 32767 else np.int32
+
+
+class Viterbi:
+    """Minimum-cost path fed block by block: memory ``N x K`` small integers, no more.
+
+    ``feed`` the emission ``(B, K)`` of consecutive frames, then ``path()``. The same
+    arithmetic as a whole-sequence Viterbi, so the same path bit for bit whatever the
+    blocks: for each frame the cheapest predecessor (first on ties) is kept as a
+    back-pointer of 1 byte (K <= 127), 2 or 4.
+    """
+
+    def __init__(self, transition: FloatArray) -> None:
+        self.trans = np.asarray(transition, dtype=np.float64)
+        k = len(self.trans)
+        self.acc: FloatArray | None = None
+        self.back: list[npt.NDArray[np.signedinteger]] = []
+        self.dtype = _small_int(k)
+        self._tot = np.empty((k, k))
+
+    def feed(self, emission: FloatArray) -> None:
+        """Advance over the frames of ``emission`` (shape (B, K))."""
+        e = np.asarray(emission, dtype=np.float64)
+        back = np.zeros((len(e), len(self.trans)), dtype=self.dtype)
+        acc, tot, trans = self.acc, self._tot, self.trans
+        for t in range(len(e)):
+            if acc is None:
+                acc = e[0].copy()
+                back[0] = np.arange(len(trans))
+                continue
+            np.add(acc[:, None], trans, out=tot)
+            back[t] = tot.argmin(axis=0)
+            tot.min(axis=0, out=acc)
+            acc += e[t]
+        self.acc = acc
+        self.back.append(back)
+
+    def path(self) -> tuple[IntArray, float]:
+        """Return the minimum-cost path over every frame fed, and its cost."""
+        back = np.concatenate(self.back) if self.back else np.zeros((0, len(self.trans)))
+        n = len(back)
+        path = np.empty(n, dtype=np.int64)
+        if n == 0 or self.acc is None:
+            return path, 0.0
+        path[-1] = int(np.argmin(self.acc))
+        cost = float(self.acc[path[-1]])
+        for t in range(n - 1, 0, -1):
+            path[t - 1] = back[t, path[t]]
+        return path, cost
+
+
+class UniformViterbi:
+    """Minimum-cost path when every change costs ``switch``, fed block by block.
+
+    Per frame only the cheapest state (an integer) and whether each state was entered from
+    it (one bit per state, packed) are kept: ``N x K / 8`` bytes of back-pointers.
+    """
+
+    def __init__(self, k: int, switch: float) -> None:
+        self.k, self.switch = k, float(switch)
+        self.acc: FloatArray | None = None
+        self.best: list[npt.NDArray[np.int32]] = []
+        self.moved: list[npt.NDArray[np.uint8]] = []
+
+    def feed(self, emission: FloatArray) -> None:
+        """Advance over the frames of ``emission`` (shape (B, K))."""
+        e = np.asarray(emission, dtype=np.float64)
+        best = np.zeros(len(e), dtype=np.int32)
+        moved = np.zeros((len(e), self.k), dtype=bool)
+        acc, s = self.acc, self.switch
+        for t in range(len(e)):
+            if acc is None:
+                acc = e[0].copy()
+                continue
+            j = int(acc.argmin())
+            m = acc[j] + s
+            np.less(m, acc, out=moved[t])
+            np.minimum(acc, m, out=acc)
+            acc += e[t]
+            best[t] = j
+        self.acc = acc
+        self.best.append(best)
+        self.moved.append(np.packbits(moved, axis=1))
+
+    def path(self) -> tuple[IntArray, float]:
+        """Return the minimum-cost path over every frame fed, and its cost."""
+        best = np.concatenate(self.best) if self.best else np.zeros(0, dtype=np.int32)
+        n = len(best)
+        path = np.empty(n, dtype=np.int64)
+        if n == 0 or self.acc is None:
+            return path, 0.0
+        moved = np.concatenate(self.moved)
+        k = int(np.argmin(self.acc))
+        cost = float(self.acc[k])
+        path[-1] = k
+        for t in range(n - 1, 0, -1):
+            if (moved[t, k >> 3] >> (7 - (k & 7))) & 1:
+                k = int(best[t])
+            path[t - 1] = k
+        return path, cost
 
 
 # --------------------------------------------------------------------------------------------
@@ -99,17 +190,16 @@ def reachable(feasible: BoolArray) -> BoolArray:
 
 
 def near_pairs(obs: IntArray, k_count: int, window: int) -> BoolArray:
-    """Pairs of candidates observed within ``window`` frames of each other, shape (K, K)."""
+    """Pairs of candidates observed within ``window`` frames of each other, shape (K, K).
+
+    The frames are scanned in overlapping windows of ``window + step + 1`` frames
+    (``step = window // 2``); working memory ``K x K`` whatever the number of frames.
+    """
     n = len(obs)
     near = np.zeros((k_count, k_count), dtype=bool)
-    # Candidates present in each window of frames [t, t + window].
-    onehot = np.zeros((n + 1, k_count))
-    onehot[np.arange(n) + 1, obs] = 1.0
-    cum = np.cumsum(onehot, axis=0)
     step = max(1, window // 2)
     for a in range(0, n, step):
-        b = min(n, a + window + step + 1)
-        present = np.flatnonzero(cum[b] - cum[a] > 0)
+        present = np.unique(obs[a : min(n, a + window + step + 1)])
         near[np.ix_(present, present)] = True
     return near
 

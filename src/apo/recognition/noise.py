@@ -141,7 +141,13 @@ def outlier_frames(
     (``sqrt(2) hypot(position, r rotation)``, ``r`` the corners' largest radius) from its
     position at ``t - 1``,
     at ``t + 1`` and from their mean (and at least ``floor`` metres), while those two agree
-    with each other better than with it. First and last frames are never outliers.
+    with each other better than with it. Where the motion is fast (G moves between the
+    neighbours by as much as an outlier), a frame far from both one-sided extrapolations
+    ``2 X[t-1] - X[t-2]`` and ``2 X[t+1] - X[t+2]`` (``OUTLIER_FACTOR`` deviations of a
+    second difference, ``sqrt(6)`` corner deviations) is one too, when no frame within two
+    of it is one. The first (last) frame is one when it is that far from the next
+    (previous) frame and from the extrapolation of the two after (before) it, and those
+    three frames agree with a smooth motion (within the first limit, none an outlier).
     """
     X = np.asarray(X_EG, dtype=np.float64)
     n = len(X)
@@ -153,25 +159,35 @@ def outlier_frames(
     r_c = float(np.linalg.norm(corners - grasped.vertices.mean(axis=0), axis=1).max())
     sigma_c = math.hypot(noise.position, r_c * noise.rotation)  # a corner, per axis
     lim = max(OUTLIER_FACTOR * math.sqrt(2.0) * sigma_c, floor)
+    lim_x = max(OUTLIER_FACTOR * math.sqrt(6.0) * sigma_c, floor)
+    # the corners at every pose, once: (N, 8, 3)
+    pts = np.einsum("nij,cj->nci", X[:, :3, :3], corners) + X[:, None, :3, 3]
 
-    def apart(a: slice, b: slice, mid: bool = False) -> FloatArray:
-        """Largest corner distance between the poses X[a] and X[b] (or their midpoint)."""
-        pa = np.einsum("nij,cj->nci", X[a, :3, :3], corners) + X[a, None, :3, 3]
-        if mid:
-            pc = np.einsum("nij,cj->nci", X[2:, :3, :3], corners) + X[2:, None, :3, 3]
-            pb = 0.5 * (
-                np.einsum("nij,cj->nci", X[:-2, :3, :3], corners) + X[:-2, None, :3, 3] + pc
-            )
-        else:
-            pb = np.einsum("nij,cj->nci", X[b, :3, :3], corners) + X[b, None, :3, 3]
-        d: FloatArray = np.linalg.norm(pa - pb, axis=2).max(axis=1)
+    def apart(p: FloatArray, q: FloatArray) -> FloatArray:
+        """Largest corner distance between the corner sets ``p`` and ``q``, per frame."""
+        d: FloatArray = np.linalg.norm(p - q, axis=-1).max(axis=-1)
         return d
 
-    inner = slice(1, -1)
-    mid_d = apart(inner, inner, mid=True)
-    prev_d, next_d = apart(inner, slice(None, -2)), apart(inner, slice(2, None))
-    across = apart(slice(2, None), slice(None, -2))
-    out[1:-1] = (prev_d > lim) & (next_d > lim) & (mid_d > lim) & (across < mid_d)
+    mid_d = apart(pts[1:-1], 0.5 * (pts[:-2] + pts[2:]))
+    far = (apart(pts[1:-1], pts[:-2]) > lim) & (apart(pts[1:-1], pts[2:]) > lim) & (mid_d > lim)
+    out[1:-1] = far & (apart(pts[2:], pts[:-2]) < mid_d)
+    if n >= 5:
+        # A fast motion (few frames per second) moves G between the two neighbours by as
+        # much as an outlier: a frame far from both one-sided extrapolations (2 X[t-1] -
+        # X[t-2], 2 X[t+1] - X[t+2]) is an outlier too, unless a frame it extrapolates from
+        # is one (a kink of the motion lies on one side's line)
+        left = apart(pts[2:-2], 2.0 * pts[1:-3] - pts[:-4])
+        right = apart(pts[2:-2], 2.0 * pts[3:-1] - pts[4:])
+        near = np.convolve(out.astype(np.float64), np.ones(5), mode="valid") > 0  # t-2..t+2
+        out[2:-2] |= far[1:-1] & (left > lim_x) & (right > lim_x) & ~near
+        # The first and last frames: far from the next (previous) frame and from the
+        # extrapolation of the two after (before) it, where those three frames agree
+        for end, a, b, c in ((0, 1, 2, 3), (n - 1, n - 2, n - 3, n - 4)):
+            ext = apart(pts[end], 2.0 * pts[a] - pts[b])
+            clean = apart(pts[a], 2.0 * pts[b] - pts[c]) <= lim and not (out[a] or out[b])
+            out[end] = apart(pts[end], pts[a]) > lim and ext > lim_x and clean
+    for t in np.flatnonzero(out[1:-2] & out[2:-1]) + 1:  # two in a row: an outlier's neighbour
+        out[t + int(mid_d[t - 1] > mid_d[t])] = False  # is off its own neighbours' midpoint too
     return out
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
 from typing import TypeVar
@@ -31,11 +31,8 @@ from apo.errors import InputFormatError
 from apo.geometry import Polyhedron
 from apo.recognition.analysis import Analysis, analyse_needed
 from apo.recognition.build import build_states, build_transitions, rejected_runs
-from apo.recognition.candidates import canonical_ids
 from apo.recognition.contacts import Observations, observe
 from apo.recognition.correction import Corrected, correct_by_label
-from apo.recognition.costs import candidate_costs, emission_costs
-from apo.recognition.decoding import constrained_path, viterbi_uniform
 from apo.recognition.distances import DistanceCache
 from apo.recognition.inputs import check_scale, check_sequence, default_threshold
 from apo.recognition.noise import (
@@ -47,9 +44,8 @@ from apo.recognition.noise import (
     estimate_noise,
     outlier_frames,
 )
+from apo.recognition.segmentation import Segmentation, first_pass, segment
 from apo.recognition.types import (
-    BoolArray,
-    CandidateState,
     FloatArray,
     IntArray,
     Progress,
@@ -197,9 +193,9 @@ def recognize_frames(
 
 #: With a noise level (estimated or given), the threshold is ``NOISE_THRESHOLD_FACTOR``
 #: deviations of a contact distance, but at least this share of :func:`default_threshold`
-#: (which stays the threshold when no noise is known). 1: the default is the floor
-#: (docs/recognition.md says why not a quarter, which was tried).
-NOISE_FLOOR_SHARE = 1.0
+#: (which stays the threshold when no noise is known). A quarter: on clean poses a real gap
+#: of a few millimetres is not a contact (docs/recognition.md, "Threshold").
+NOISE_FLOOR_SHARE = 0.25
 
 #: Passes of recognition again with the contact residuals' noise (drift), at most.
 CONTACT_PASSES = 2
@@ -244,33 +240,23 @@ def _recognise_once(
     observed = observe(scene, memoize=memoize, progress=progress)
     tm["contacts"] = time.perf_counter() - t0
     dists = DistanceCache(grasped, environment, X, scene.unit)
-    first = [s.touching for s in observed.states]
-    emission0 = _timed(
-        tm,
-        "segmentation",
-        emission_costs,
-        dists,
-        observed.keys,
-        first,
-        observed.labels,
-        scene.costs,
-    )
-    masked = np.where(scene.outliers[:, None], 0.0, emission0)
-    path0 = _timed(tm, "segmentation", viterbi_uniform, masked, scene.costs.switch)
-    an = _timed(tm, "analysis", analyse_needed, scene, observed, emission0, path0)
-    path, obs_c, emission = _timed(tm, "segmentation", segment, scene, an, dists, observed)
+    path0, own = _timed(tm, "segmentation", first_pass, scene, observed, dists)
+    an = _timed(tm, "analysis", analyse_needed, scene, observed, own, path0)
+    seg = _timed(tm, "segmentation", segment, scene, an, dists, observed)
+    del dists  # the distances of every element at every frame: not needed any more
+    path, obs_c = seg.path, seg.observed
     chosen = an.states(observed)
     corrected = _timed(
         tm, "correction", correct_by_label, grasped, environment, X, chosen, path, scene.unit
     )
     t4 = time.perf_counter()
     task = build_task(
-        scene, t, path, obs_c, corrected, an, emission, units=units, models=models, source=source
+        scene, t, path, obs_c, corrected, an, seg, units=units, models=models, source=source
     )
     tm["task"] = time.perf_counter() - t4
     tm["total"] = time.perf_counter() - t0
     task = replace(task, extra={**task.extra, "noise": noise_record(est, units)})
-    rec = _result(task, observed, an, path, obs_c, corrected, t, emission, X, tm)
+    rec = _result(task, observed, an, seg, corrected, t, X, tm)
     return replace(rec, noise=est, outliers=scene.outliers, observed_states=observed.states)
 
 
@@ -339,41 +325,6 @@ def make_scene(
     return Scene(grasped, environment, X, finder, exact, costs, out, scale)
 
 
-def segment(
-    scene: Scene, an: Analysis, dists: DistanceCache, observed: Observations
-) -> tuple[IntArray, IntArray, FloatArray]:
-    """Constrained segmentation over the analysed candidates.
-
-    Returns the chosen candidate of each frame and the observed one, both with candidates
-    of the same closure identified (:func:`~apo.recognition.candidates.canonical_ids`),
-    and the cost array ``(N, K)``.
-    """
-    w = scene.costs
-    states = an.states(observed)
-    emission = candidate_costs(
-        dists, an.keys, states, an.candidates, an.bridges, observed.labels, w
-    )
-    emission = np.where(scene.outliers[:, None] & np.isfinite(emission), 0.0, emission)
-    same = same_dof(an.candidates)
-    path = constrained_path(emission, an.feasible, w.switch, w.jump, same, w.same)
-    canon = canonical_ids(an.candidates)
-    return canon[path], canon[observed.labels], emission
-
-
-def same_dof(candidates: Sequence[CandidateState | None]) -> BoolArray:
-    """Pairs of analysed candidates with the same DOF numbers (six per space), (K, K)."""
-    sig = [
-        None if c is None else (c.dof.six("translation"), c.dof.six("rotation")) for c in candidates
-    ]
-    k = len(sig)
-    out = np.zeros((k, k), dtype=bool)
-    for i in range(k):
-        for j in range(i + 1, k):
-            if sig[i] is not None and sig[i] == sig[j]:
-                out[i, j] = out[j, i] = True
-    return out
-
-
 def build_task(
     scene: Scene,
     times: FloatArray,
@@ -381,7 +332,7 @@ def build_task(
     obs_c: IntArray,
     corrected: Corrected,
     an: Analysis,
-    emission: FloatArray,
+    seg: Segmentation,
     *,
     units: str,
     models: tuple[ModelRef, ModelRef] | None,
@@ -391,7 +342,7 @@ def build_task(
     runs, ids, states = build_states(times, path, obs_c, corrected, an.candidates)
     transitions = build_transitions(runs, ids, path, an.candidates, an.feasible)
     rejected = rejected_runs(
-        obs_c, path, runs, ids, an.keys, an.candidates, an.feasible, emission, scene.costs
+        obs_c, path, runs, ids, an.keys, an.candidates, an.feasible, seg, scene.costs
     )
     G, E = scene.grasped, scene.environment
     g_ref, e_ref = models or (ModelRef(G.name, None, G.name), ModelRef(E.name, None, E.name))
@@ -412,15 +363,14 @@ def _result(
     task: TaskModel,
     observed: Observations,
     an: Analysis,
-    path: IntArray,
-    obs_c: IntArray,
+    seg: Segmentation,
     corrected: Corrected,
     times: FloatArray,
-    emission: FloatArray,
     X: FloatArray,
     tm: dict[str, float],
 ) -> Recognition:
     """Gather the per-frame diagnostics."""
+    path, obs_c = seg.path, seg.observed
     Xc, res_before, res_after, conv = corrected
     state_of_frame = [s.id for s in task.states for _ in range(s.frames[0], s.frames[1] + 1)]
     return Recognition(
@@ -436,7 +386,8 @@ def _result(
         keys=an.keys,
         feasible=an.feasible,
         times=times,
-        emission=emission,
+        costs=seg.costs,
+        cost_columns=seg.columns,
         timings=tm,
         X_observed=X,
         X_corrected=np.where(conv[:, None, None], Xc, X),

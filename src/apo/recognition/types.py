@@ -194,8 +194,11 @@ class Recognition:
     feasible : ndarray of bool, shape (K, K)
         Direct-transition test between candidates (diagonal True; False where untested).
     times : ndarray, shape (N,)
-    emission : ndarray, shape (N, K)
-        Cost of each candidate at each frame (``docs/recognition.md``).
+    costs : ndarray, shape (N, U)
+        Cost of each candidate the segmentation could choose (the analysed ones,
+        ``cost_columns``) at each frame (``docs/recognition.md``).
+    cost_columns : ndarray of int, shape (U,)
+        Index into ``keys`` of each column of ``costs``, ascending.
     timings : dict
         Seconds spent in each stage.
     X_observed : ndarray, shape (N, 4, 4)
@@ -223,13 +226,24 @@ class Recognition:
     keys: list[StateKey]
     feasible: BoolArray
     times: FloatArray
-    emission: FloatArray
+    costs: FloatArray
+    cost_columns: IntArray
     timings: dict[str, float] = field(default_factory=dict)
     X_observed: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     X_corrected: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     noise: NoiseEstimate | None = None
     outliers: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     observed_states: list[ContactState] = field(default_factory=list)
+
+    @property
+    def emission(self) -> FloatArray:
+        """Cost of each candidate at each frame, shape (N, K), ``inf`` where not analysed.
+
+        Made from ``costs`` on each access (``N x K`` floats: not kept).
+        """
+        out = np.full((len(self.costs), len(self.keys)), np.inf)
+        out[:, self.cost_columns] = self.costs
+        return out
 
     @property
     def flags(self) -> list[list[str]]:
