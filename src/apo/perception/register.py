@@ -30,6 +30,7 @@ Open3D is optional: it is imported by the functions that need it
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,7 @@ import numpy.typing as npt
 
 from apo.errors import ApoError
 from apo.perception.frames import Camera
+from apo.perception.projective import FacePlanes, face_planes, projective_icp
 from apo.perception.render import Triangles, rasterize
 from apo.spatial import invert_pose, transform_points
 from apo.typing import FloatArray
@@ -53,6 +55,7 @@ __all__ = [
     "orthonormalised",
     "penetration",
     "register",
+    "register_projective",
     "surface_check",
 ]
 
@@ -131,6 +134,14 @@ class ModelCloud:
         self._pcd: Any = None
         self._dense: Any = None
         self._tree: Any = None
+        self._faces: FacePlanes | None = None
+
+    @property
+    def faces(self) -> FacePlanes:
+        """The planes of the model's faces (projective ICP, :mod:`apo.perception.projective`)."""
+        if self._faces is None:
+            self._faces = face_planes(self.vertices, self.triangles)
+        return self._faces
 
     @property
     def pcd(self) -> Any:
@@ -162,6 +173,16 @@ class ModelCloud:
 
     def _nearest(self, points_M: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Signed point-to-plane and point-to-point distances to the nearest dense sample."""
+        side, dist, _ = self.nearest_sample(points_M)
+        return side, dist
+
+    def nearest_sample(
+        self, points_M: npt.ArrayLike
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.intp]]:
+        """Return the nearest dense sample's signed plane distance, distance and index.
+
+        Points in the model frame; the k-d tree is built once.
+        """
         from scipy.spatial import cKDTree
 
         if self._tree is None:
@@ -169,7 +190,7 @@ class ModelCloud:
         P = np.asarray(points_M, dtype=np.float64)
         dist, idx = self._tree.query(P)
         side = np.einsum("ij,ij->i", P - self.dense_points[idx], self.dense_normals[idx])
-        return side, np.asarray(dist, dtype=np.float64)
+        return side, np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.intp)
 
 
 def _point_cloud(points: FloatArray, normals: FloatArray) -> Any:
@@ -613,6 +634,95 @@ def evaluate(
     return Registration(X, fitness, rmse, violation, len(P), pen, surface)
 
 
+def register_projective(
+    depth: npt.ArrayLike,
+    camera: Camera,
+    model: ModelCloud,
+    X_CM_init: npt.ArrayLike,
+    *,
+    points_C: npt.ArrayLike,
+    mask: npt.ArrayLike | None = None,
+    sigma: npt.ArrayLike | None = None,
+    start_scale: float = 0.006,
+    inlier_distance: float = 0.002,
+    iterations: int = 15,
+    obstacle: tuple[ModelCloud, FloatArray] | None = None,
+    free_space_tolerance: float = 0.005,
+    occluder: npt.ArrayLike | None = None,
+) -> Registration:
+    """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
+
+    The frame-to-frame registration: the model rendered at the pose pairs each object pixel
+    (``mask``) of the depth window with the face visible there. The final Tukey scale of a
+    pixel is ``max(inlier_distance, 4.685 sigma)``; the result is scored as :func:`register`'s
+    (:func:`evaluate`, on ``points_C``, the object's observed points).
+
+    Parameters
+    ----------
+    depth : ndarray, shape (H, W)
+        The window's depth, metres.
+    camera : Camera
+        The window's camera.
+    model : ModelCloud
+    X_CM_init : ndarray, shape (4, 4)
+        Start pose (the prediction), camera frame, metres.
+    points_C : ndarray, shape (N, 3)
+        The object's observed points (for the fitness).
+    mask : ndarray of bool, shape (H, W), optional
+        The object's pixels.
+    sigma : ndarray, shape (H, W), optional
+        Depth noise per pixel, metres.
+    start_scale : float, optional
+        Tukey scale of the first iteration, metres (the prediction's uncertainty).
+    inlier_distance, obstacle, free_space_tolerance, occluder : optional
+        As :func:`register`'s.
+    iterations : int, optional
+        Most Gauss-Newton steps.
+    """
+    constraint = None if obstacle is None else _non_penetration(model, obstacle)
+    res = projective_icp(
+        depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
+        start_scale=start_scale, iterations=iterations, occluder=occluder,
+        constraint=constraint,
+    )  # fmt: skip
+    return evaluate(
+        points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
+        obstacle=obstacle, free_space_tolerance=free_space_tolerance, occluder=occluder,
+    )  # fmt: skip
+
+
+PENETRATION_ALLOWANCE = 0.0005
+"""Depth (metres) a model sample may sit inside the obstacle before the projective ICP pushes it
+out (the signed distance to the obstacle's nearest dense sample is approximate at its edges)."""
+
+
+def _non_penetration(
+    model: ModelCloud, obstacle: tuple[ModelCloud, FloatArray], *, samples: int = 600
+) -> Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]]:
+    """Return the rows pushing the model's samples out of the obstacle.
+
+    See ``projective_icp``'s ``constraint``: for a sample ``PENETRATION_ALLOWANCE`` or more
+    inside, the residual is its depth along the obstacle's outward normal there (two solids
+    cannot overlap: where the parts are hidden inside each other, this is what holds the pose).
+    """
+    other, X_CO = obstacle
+    X_OC = invert_pose(X_CO)
+    pts = model.points[:: max(1, len(model.points) // samples)]
+    lo = other.vertices.min(0) - PENETRATION_ALLOWANCE
+    hi = other.vertices.max(0) + PENETRATION_ALLOWANCE
+
+    def rows(X_CM: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        X_OM = X_OC @ X_CM
+        q_O = transform_points(X_OM, pts)
+        near = np.nonzero(np.all((q_O > lo) & (q_O < hi), axis=1))[0]
+        side, _, idx = other.nearest_sample(q_O[near])
+        inside = side < -PENETRATION_ALLOWANCE
+        n_M = other.dense_normals[idx[inside]] @ X_OM[:3, :3]  # R_OM^T n_O, row-wise
+        return pts[near[inside]], n_M, side[inside] + PENETRATION_ALLOWANCE
+
+    return rows
+
+
 def _candidate_rotations(points_C: FloatArray, model: ModelCloud) -> list[FloatArray]:
     from scipy.spatial.transform import Rotation
 
@@ -722,18 +832,52 @@ def initialise(
     Registration
         The most confident candidate (any of its symmetric twins).
     """
-    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+    from apo.perception.search import centres
 
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
         return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
     rng = np.random.default_rng(seed)
-    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
-    sub = voxel_subsample(P, max_points, rng)
-    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
     score: dict[str, Any] = {"inlier_distance": inlier_distance, "depth": depth, "camera": camera,
              "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
              "occluder": occluder}  # fmt: skip
+    search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
+              "symmetry_rotations": symmetry_rotations}  # fmt: skip
+    found = centres(P, model.diameter)
+    if len(found) == 1:
+        return _search(P, model, score, **search)
+    # Points spread far wider than the model (a hand and forearm in view when the colour
+    # is not used): a search about each dense cluster, on the points near it.
+    best: Registration | None = None
+    for c in found:
+        near = P[np.linalg.norm(P - c, axis=1) <= 0.75 * model.diameter]
+        if len(near) < 10:
+            continue
+        r = _search(near, model, score, **search)
+        if best is None or (r.confidence, r.quality) > (best.confidence, best.quality):
+            best = r
+    assert best is not None
+    return best
+
+
+def _search(
+    P: FloatArray,
+    model: ModelCloud,
+    score: dict[str, Any],
+    *,
+    loss: str,
+    max_points: int,
+    keep: int,
+    rng: np.random.Generator,
+    symmetry_rotations: npt.ArrayLike | None,
+) -> Registration:
+    """Run the coarse-to-fine search of :func:`initialise` about the centroid of ``P``."""
+    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+
+    inlier_distance = score["inlier_distance"]
+    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
+    sub = voxel_subsample(P, max_points, rng)
+    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
     # Every candidate orientation about the points' centroid pushed back along the ray (the
     # visible surface is nearer than the model's centroid: a sixth and a third of its size).
     c = P.mean(0)
