@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from apo import synthetic
-from apo.recognition import recognize_frames, segmentation
+from apo.recognition import correction, recognize_frames, segmentation
 from apo.recognition.decoding import UniformViterbi, Viterbi, viterbi, viterbi_uniform
-from apo.report.writer import frames_csv, task_document
+from apo.report.writer import frames_csv_chunks, task_document
 
 
 def _reference_viterbi(e: np.ndarray, trans: np.ndarray) -> list[int]:
@@ -76,21 +76,25 @@ def test_back_pointers_are_small_integers() -> None:
     assert dec_u.moved[0].nbytes == 16 * 25  # one bit per frame and state
 
 
-def _outputs(demo: synthetic.SyntheticDemo) -> tuple[str, str, np.ndarray]:
+def _outputs(demo: synthetic.SyntheticDemo, block: int) -> tuple[str, str, np.ndarray]:
     rec = recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG)
-    return task_document(rec)[1], frames_csv(rec), rec.emission
+    return task_document(rec)[1], "".join(frames_csv_chunks(rec, block)), rec.emission
 
 
 @pytest.mark.parametrize("seed", [1, 4, 7])
 def test_block_wise_recognition_equals_whole_sequence(monkeypatch, seed: int) -> None:
-    """Blocks of 7 frames give the task, frames.csv and costs of one block for everything."""
+    """Blocks of 7 frames (costs, decoding, correction, frames.csv) give the task, frames.csv
+    and costs of one block for everything."""
     demo = synthetic.add_noise(
         synthetic.random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, outlier_rate=0.02, seed=seed
     )
     monkeypatch.setattr(segmentation, "BLOCK_FRAMES", 10**9)
-    whole = _outputs(demo)
+    monkeypatch.setattr(correction, "CORRECTION_BLOCK", 10**9)
+    whole = _outputs(demo, 10**9)
     monkeypatch.setattr(segmentation, "BLOCK_FRAMES", 7)
-    blocks = _outputs(demo)
+    monkeypatch.setattr(correction, "CORRECTION_BLOCK", 7)
+    blocks = _outputs(demo, 7)
     assert blocks[0] == whole[0]
     assert blocks[1] == whole[1]
+    assert blocks[1].count("\n") == len(demo.X_EG) + 1
     assert np.array_equal(blocks[2], whole[2])

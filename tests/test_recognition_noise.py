@@ -212,3 +212,55 @@ def test_a_fast_motion_with_outliers_is_recognised_exactly(seed):
     want = [demo.true_states[int(demo.labels[a])].fig25 for _s, a, _b in demo.segments()]
     assert [tuple(s.fig25) for s in rec.task.states] == [tuple(w) for w in want]
     assert not (rec.outliers & ~noisy.outliers).any()
+
+
+def _lifted_and_set_down(
+    demo: synthetic.SyntheticDemo, gap: float
+) -> tuple[np.ndarray, list[tuple[int, ...]]]:
+    """The demonstration with G lifted off its first contact state by ``gap`` and set down.
+
+    At the middle frame of the first contact state, G moves along the sum of the contact
+    normals (from E to G) up to ``gap`` in 3 frames, hovers there for 9 frames, comes back
+    down in 3 frames to the pose it left, and the demonstration goes on. Returns the poses
+    and the expected Fig. 25 numbers of the states: the original ones with "free" and the
+    first contact state again inserted after it.
+    """
+    from apo.contact import ContactFinder
+
+    segs = demo.segments()
+    i = next(k for k, (s, _a, _b) in enumerate(segs) if demo.true_states[s].fig25[6] > 0)
+    _state, a, b = segs[i]
+    m = (a + b) // 2
+    X0 = demo.X_EG_true[m]
+    found = ContactFinder(demo.grasped, demo.environment).find(X0)
+    n = sum(e.normals.mean(axis=0) for e in found.elements)
+    n = n / np.linalg.norm(n)
+    ups = (
+        [gap * u for u in (1 / 3, 2 / 3, 1.0)] + [gap] * 7 + [gap * u for u in (1.0, 2 / 3, 1 / 3)]
+    )
+    hover = []
+    for h in ups:
+        X = X0.copy()
+        X[:3, 3] += h * n
+        hover.append(X)
+    poses = np.concatenate([demo.X_EG_true[: m + 1], np.stack(hover), demo.X_EG_true[m:]])
+    want = [demo.true_states[s].fig25 for s, _a, _b in segs]
+    free = (3, 0, 0, 3, 0, 0, 0, 0)
+    want = [*want[: i + 1], free, want[i], *want[i + 1 :]]
+    return poses, [tuple(w) for w in want]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_clean_gap_within_the_scale_aware_default_is_free(seed):
+    # Exact poses: G lifted off its first contact by 0.6 times the scale-aware default
+    # threshold (3.5 % of the smaller model's diagonal, 1.3-3.6 mm here) and set down
+    # again. The threshold follows the noise estimated from the poses (none: the floor, a
+    # quarter of the default), so the gap is free: release, then push-to again. With the
+    # default as the threshold the hover was one contact with the state before and after.
+    demo = synthetic.random_variant(200 + seed)
+    gap = 0.6 * default_threshold(demo.grasped, demo.environment)
+    poses, want = _lifted_and_set_down(demo, gap)
+    times = np.arange(len(poses)) / float(demo.meta["fps"])
+    rec = recognize_frames(demo.grasped, demo.environment, times, poses)
+    assert [tuple(s.fig25) for s in rec.task.states] == want
+    assert rec.task.threshold < 0.5 * gap

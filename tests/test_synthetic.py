@@ -330,3 +330,15 @@ def test_noise_validation() -> None:
     assert add_noise(d, sigma_mm=1.0, sigma_deg=1.0, seed=g).meta["noise"][0]["seed"] == (
         "generator"
     )
+
+
+@pytest.mark.parametrize(
+    ("scale", "depth", "margin"), [(0.8, 0.05, 0.003), (1.6, 0.05, 0.0039), (1.0, 0.07, 0.002)]
+)
+def test_the_t_peg_keeps_its_margin_with_a_short_stem(scale: float, depth: float, margin: float):
+    # Nothing that is not scripted to touch comes within the margin, at any frame: with a
+    # short stem the crossbar came within 1.2 k mm of the block's top at the start of E
+    demo = peg_in_hole_2d(scale=scale, depth=depth, margin=margin)
+    finder = ContactFinder(demo.grasped, demo.environment, threshold=0.95 * margin)
+    for t, X in enumerate(demo.X_EG_true):
+        assert finder.find(X).key == demo.true_states[int(demo.labels[t])].key, t

@@ -40,7 +40,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 from types import TracebackType
@@ -402,6 +402,16 @@ class OutputSet:
         """Write ``text`` (UTF-8, Unix line ends) as ``name``; return its final path."""
         with open(self.path(name), "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
+        return self.final(name)
+
+    def write_chunks(self, name: str, chunks: Iterable[str]) -> Path:
+        """Write the text ``chunks`` one after another as ``name`` (UTF-8, Unix line ends).
+
+        For large files made block by block: only one chunk is in memory at a time.
+        """
+        with open(self.path(name), "w", encoding="utf-8", newline="\n") as fh:
+            for chunk in chunks:
+                fh.write(chunk)
         return self.final(name)
 
     def write_bytes(self, name: str, data: bytes) -> Path:

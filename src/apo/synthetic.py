@@ -404,6 +404,16 @@ def peg_in_hole_2d(
     )  # fmt: skip
 
 
+def _crossbar_clearance(theta: float, k: float, depth: float) -> float:
+    """Return the height of the T-peg's crossbar over the block's top in state E.
+
+    The crossbar's lower outer corner on the slot's left side, the peg wedged across the
+    slot at tilt ``theta`` (radians); ``k`` the scale, ``depth`` the scaled stem length.
+    """
+    w, overhang = 0.035 * k, 0.0175 * k  # slot = stem width; the crossbar's overhang
+    return (depth - w * math.sin(theta)) * math.cos(theta) - overhang * math.sin(theta)
+
+
 def _peg_2d_phases(th0: float, margin: float, k: float, depth: float) -> list[_Phase]:
     """Return the eight phases of :func:`peg_in_hole_2d` (tilt ``th0`` rad, scene scale ``k``)."""
     s, H, w = 0.0175 * k, 0.088 * k, 0.035 * k  # half slot, top, slot width
@@ -411,7 +421,11 @@ def _peg_2d_phases(th0: float, margin: float, k: float, depth: float) -> list[_P
     corner_G = np.array([-s, 0.0, 0.0])  # the peg's bottom-left edge (at z = 0)
     rim_R = np.array([s, H])
     th_c = th0 + math.radians(3.0)
-    th1 = math.radians(50.0)  # D ends / E starts
+    # D ends / E starts at 50 degrees, or less where a short stem would bring the crossbar
+    # within the margin of the block's top there
+    th1 = math.radians(50.0)
+    while _crossbar_clearance(th1, k, depth) < margin:
+        th1 -= math.radians(0.25)
     th_e = math.radians(30.0)  # E ends (the bottom-right edge stays >= 2.3 mm off the top)
 
     def at(theta: float, corner: FloatArray) -> FloatArray:

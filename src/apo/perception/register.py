@@ -30,6 +30,7 @@ Open3D is optional: it is imported by the functions that need it
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,7 @@ import numpy.typing as npt
 
 from apo.errors import ApoError
 from apo.perception.frames import Camera
+from apo.perception.projective import FacePlanes, face_planes, projective_icp
 from apo.perception.render import Triangles, rasterize
 from apo.spatial import invert_pose, transform_points
 from apo.typing import FloatArray
@@ -46,12 +48,14 @@ __all__ = [
     "ModelCloud",
     "Registration",
     "SurfaceCheck",
+    "evaluate",
     "free_space_violation",
     "initialise",
     "model_cloud",
     "orthonormalised",
     "penetration",
     "register",
+    "register_projective",
     "surface_check",
 ]
 
@@ -130,6 +134,14 @@ class ModelCloud:
         self._pcd: Any = None
         self._dense: Any = None
         self._tree: Any = None
+        self._faces: FacePlanes | None = None
+
+    @property
+    def faces(self) -> FacePlanes:
+        """The planes of the model's faces (projective ICP, :mod:`apo.perception.projective`)."""
+        if self._faces is None:
+            self._faces = face_planes(self.vertices, self.triangles)
+        return self._faces
 
     @property
     def pcd(self) -> Any:
@@ -161,6 +173,16 @@ class ModelCloud:
 
     def _nearest(self, points_M: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Signed point-to-plane and point-to-point distances to the nearest dense sample."""
+        side, dist, _ = self.nearest_sample(points_M)
+        return side, dist
+
+    def nearest_sample(
+        self, points_M: npt.ArrayLike
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.intp]]:
+        """Return the nearest dense sample's signed plane distance, distance and index.
+
+        Points in the model frame; the k-d tree is built once.
+        """
         from scipy.spatial import cKDTree
 
         if self._tree is None:
@@ -168,7 +190,7 @@ class ModelCloud:
         P = np.asarray(points_M, dtype=np.float64)
         dist, idx = self._tree.query(P)
         side = np.einsum("ij,ij->i", P - self.dense_points[idx], self.dense_normals[idx])
-        return side, np.asarray(dist, dtype=np.float64)
+        return side, np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.intp)
 
 
 def _point_cloud(points: FloatArray, normals: FloatArray) -> Any:
@@ -571,20 +593,134 @@ def register(
         kernel = _kernel(o3d, loss, inlier_distance if last else dist / 2)
         est = reg.TransformationEstimationPointToPlane(kernel)
         T = reg.registration_icp(src, target, dist, T, est, criteria).transformation
-    T = orthonormalised(np.asarray(T))
-    plane, point = model.residuals(transform_points(T, P))
+    return evaluate(
+        P, model, invert_pose(orthonormalised(np.asarray(T))), inlier_distance=inlier_distance,
+        depth=depth, camera=camera, obstacle=obstacle,
+        free_space_tolerance=free_space_tolerance, occluder=occluder,
+    )  # fmt: skip
+
+
+def evaluate(
+    points_C: npt.ArrayLike,
+    model: ModelCloud,
+    X_CM: npt.ArrayLike,
+    *,
+    inlier_distance: float = 0.002,
+    depth: npt.ArrayLike | None = None,
+    camera: Camera | None = None,
+    obstacle: tuple[ModelCloud, FloatArray] | None = None,
+    free_space_tolerance: float = 0.005,
+    occluder: npt.ArrayLike | None = None,
+) -> Registration:
+    """Score a pose of a model against observed points (and the depth image): a Registration.
+
+    The fitness and RMS residual against the dense samples; with ``depth`` and ``camera``,
+    the surface check (the confidence); with ``obstacle``, the penetration. The parameters
+    are those of :func:`register`.
+    """
+    P = np.asarray(points_C, dtype=np.float64)
+    X = orthonormalised(X_CM)
+    plane, point = model.residuals(transform_points(invert_pose(X), P))
     inlier = (plane <= inlier_distance) & (point <= inlier_distance + 2 * model.spacing)
-    fitness = float(np.count_nonzero(inlier)) / len(P)
+    fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
     rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
-    X_CM = invert_pose(T)
     surface = None
     if depth is not None and camera is not None:
         surface = surface_check(
-            X_CM, model, depth, camera, tolerance=free_space_tolerance, occluder=occluder
+            X, model, depth, camera, tolerance=free_space_tolerance, occluder=occluder
         )
-    pen = penetration(X_CM, model, obstacle) if obstacle is not None else 0.0
+    pen = penetration(X, model, obstacle) if obstacle is not None else 0.0
     violation = surface.violation if surface is not None else 0.0
-    return Registration(X_CM, fitness, rmse, violation, len(P), pen, surface)
+    return Registration(X, fitness, rmse, violation, len(P), pen, surface)
+
+
+def register_projective(
+    depth: npt.ArrayLike,
+    camera: Camera,
+    model: ModelCloud,
+    X_CM_init: npt.ArrayLike,
+    *,
+    points_C: npt.ArrayLike,
+    mask: npt.ArrayLike | None = None,
+    sigma: npt.ArrayLike | None = None,
+    start_scale: float = 0.006,
+    inlier_distance: float = 0.002,
+    iterations: int = 15,
+    obstacle: tuple[ModelCloud, FloatArray] | None = None,
+    free_space_tolerance: float = 0.005,
+    occluder: npt.ArrayLike | None = None,
+) -> Registration:
+    """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
+
+    The frame-to-frame registration: the model rendered at the pose pairs each object pixel
+    (``mask``) of the depth window with the face visible there. The final Tukey scale of a
+    pixel is ``max(inlier_distance, 4.685 sigma)``; the result is scored as :func:`register`'s
+    (:func:`evaluate`, on ``points_C``, the object's observed points).
+
+    Parameters
+    ----------
+    depth : ndarray, shape (H, W)
+        The window's depth, metres.
+    camera : Camera
+        The window's camera.
+    model : ModelCloud
+    X_CM_init : ndarray, shape (4, 4)
+        Start pose (the prediction), camera frame, metres.
+    points_C : ndarray, shape (N, 3)
+        The object's observed points (for the fitness).
+    mask : ndarray of bool, shape (H, W), optional
+        The object's pixels.
+    sigma : ndarray, shape (H, W), optional
+        Depth noise per pixel, metres.
+    start_scale : float, optional
+        Tukey scale of the first iteration, metres (the prediction's uncertainty).
+    inlier_distance, obstacle, free_space_tolerance, occluder : optional
+        As :func:`register`'s.
+    iterations : int, optional
+        Most Gauss-Newton steps.
+    """
+    constraint = None if obstacle is None else _non_penetration(model, obstacle)
+    res = projective_icp(
+        depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
+        start_scale=start_scale, iterations=iterations, occluder=occluder,
+        constraint=constraint,
+    )  # fmt: skip
+    return evaluate(
+        points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
+        obstacle=obstacle, free_space_tolerance=free_space_tolerance, occluder=occluder,
+    )  # fmt: skip
+
+
+PENETRATION_ALLOWANCE = 0.0005
+"""Depth (metres) a model sample may sit inside the obstacle before the projective ICP pushes it
+out (the signed distance to the obstacle's nearest dense sample is approximate at its edges)."""
+
+
+def _non_penetration(
+    model: ModelCloud, obstacle: tuple[ModelCloud, FloatArray], *, samples: int = 600
+) -> Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]]:
+    """Return the rows pushing the model's samples out of the obstacle.
+
+    See ``projective_icp``'s ``constraint``: for a sample ``PENETRATION_ALLOWANCE`` or more
+    inside, the residual is its depth along the obstacle's outward normal there (two solids
+    cannot overlap: where the parts are hidden inside each other, this is what holds the pose).
+    """
+    other, X_CO = obstacle
+    X_OC = invert_pose(X_CO)
+    pts = model.points[:: max(1, len(model.points) // samples)]
+    lo = other.vertices.min(0) - PENETRATION_ALLOWANCE
+    hi = other.vertices.max(0) + PENETRATION_ALLOWANCE
+
+    def rows(X_CM: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        X_OM = X_OC @ X_CM
+        q_O = transform_points(X_OM, pts)
+        near = np.nonzero(np.all((q_O > lo) & (q_O < hi), axis=1))[0]
+        side, _, idx = other.nearest_sample(q_O[near])
+        inside = side < -PENETRATION_ALLOWANCE
+        n_M = other.dense_normals[idx[inside]] @ X_OM[:3, :3]  # R_OM^T n_O, row-wise
+        return pts[near[inside]], n_M, side[inside] + PENETRATION_ALLOWANCE
+
+    return rows
 
 
 def _candidate_rotations(points_C: FloatArray, model: ModelCloud) -> list[FloatArray]:
@@ -632,6 +768,14 @@ def distinct_up_to_symmetry(
     return kept
 
 
+COARSE_POINTS = 150
+"""Points (evenly spread) on which every candidate of the global search is advanced first."""
+REFINE_POINTS = 3000
+"""Points (evenly spread) on which the global search's best candidates are refined."""
+CANDIDATES = 32
+"""Distinct candidates of the global search scored on the depth image."""
+
+
 def initialise(
     points_C: npt.ArrayLike,
     model: ModelCloud,
@@ -641,7 +785,7 @@ def initialise(
     inlier_distance: float = 0.002,
     loss: str = "tukey",
     max_points: int = 400,
-    keep: int = 6,
+    keep: int = 3,
     seed: int | np.random.Generator | None = 0,
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
@@ -688,46 +832,51 @@ def initialise(
     Registration
         The most confident candidate (any of its symmetric twins).
     """
+    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
         return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
     rng = np.random.default_rng(seed)
-    sub = P if len(P) <= max_points else P[rng.choice(len(P), max_points, replace=False)]
+    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
+    sub = voxel_subsample(P, max_points, rng)
+    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
+    score: dict[str, Any] = {"inlier_distance": inlier_distance, "depth": depth, "camera": camera,
+             "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
+             "occluder": occluder}  # fmt: skip
+    # Every candidate orientation about the points' centroid pushed back along the ray (the
+    # visible surface is nearer than the model's centroid: a sixth and a third of its size).
     c = P.mean(0)
     ray = c / np.linalg.norm(c)
-    scored: list[Registration] = []
-    # The visible surface is nearer than the model's centroid: try it a sixth and a third of
-    # the model's size behind the points.
-    for depth_offset in (model.diameter / 6, model.diameter / 3):
-        centre = c + ray * depth_offset
-        for R in distinct_up_to_symmetry(_candidate_rotations(P, model), symmetry_rotations):
+    rotations = distinct_up_to_symmetry(_candidate_rotations(P, model), symmetry_rotations)
+    starts = []
+    for offset in (model.diameter / 6, model.diameter / 3):
+        for R in rotations:
             X = np.eye(4)
             X[:3, :3] = R
-            X[:3, 3] = centre - R @ model.centroid
-            scored.append(
-                register(
-                    sub, model, X, inlier_distance=inlier_distance, loss=loss, iterations=12,
-                    depth=depth, camera=camera, obstacle=obstacle, dense=False,
-                    free_space_tolerance=free_space_tolerance, occluder=occluder,
-                )
-            )  # fmt: skip
-    scored.sort(key=lambda r: -r.confidence)
-    best: Registration | None = None
-    for cand in scored[:keep]:
-        r = register(
-            P,
-            model,
-            cand.X_CM,
-            max_distance=model.diameter / 12,
-            inlier_distance=inlier_distance,
-            loss=loss,
-            depth=depth,
-            camera=camera,
-            obstacle=obstacle,
-            free_space_tolerance=free_space_tolerance,
-            occluder=occluder,
-        )
-        if best is None or r.confidence > best.confidence:
-            best = r
-    assert best is not None
-    return best
+            X[:3, 3] = c + ray * offset - R @ model.centroid
+            starts.append(invert_pose(X))
+    T = np.stack(starts)
+    d0 = model.diameter / 4
+    for dist in (d0, d0 / 3):  # coarse: every candidate, few points, sparse samples
+        dist = max(dist, 2 * inlier_distance)
+        T = batch_icp(few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss)
+    # The best distinct results on more points; then scored on the depth image.
+    order = np.argsort(-inlier_fraction(sub, model, T, 2 * inlier_distance), kind="stable")
+    T = T[distinct_poses(T[order], model, symmetry_rotations, limit=CANDIDATES)]
+    dist = max(d0 / 9, 2 * inlier_distance)
+    T = batch_icp(sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss)
+    scored = [evaluate(sub, model, invert_pose(t), **score) for t in T]
+    ranked = sorted(range(len(T)), key=lambda k: -scored[k].confidence)[:keep]
+    # The most confident, on all points (at most REFINE_POINTS, evenly spread), dense samples.
+    T = T[ranked]
+    d1 = model.diameter / 12
+    for k, dist in enumerate((d1, d1 / 3, d1 / 9)):
+        dist = max(dist, 2 * inlier_distance)
+        last = k == 2
+        T = batch_icp(
+            full, model, T, distance=dist, scale=inlier_distance if last else dist / 2,
+            iterations=30, dense=last, loss=loss,
+        )  # fmt: skip
+    best = [evaluate(full, model, invert_pose(t), **score) for t in T]
+    return max(best, key=lambda r: (r.confidence, r.quality))

@@ -109,8 +109,8 @@ def correct_by_label(
         if not elements:
             continue
         first, inverse = distinct_poses(X[frames])
-        Xk, b, a, c = correct_poses(
-            grasped, environment, X[frames[first]], elements, threshold=threshold
+        Xk, b, a, c = _correct_in_blocks(
+            grasped, environment, X[frames[first]], elements, threshold
         )
         Xc[frames], before[frames], after[frames], conv[frames] = (
             Xk[inverse],
@@ -119,6 +119,28 @@ def correct_by_label(
             c[inverse],
         )
     return Xc, before, after, conv
+
+
+#: Poses corrected in one batch at most: the batch's working arrays (Jacobians, SVDs) are
+#: this many times the elements' rows, whatever the length of the demonstration.
+CORRECTION_BLOCK = 1024
+
+
+def _correct_in_blocks(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X: FloatArray,
+    elements: Sequence[ContactElement],
+    threshold: float,
+) -> Corrected:
+    """:func:`correct_poses` over blocks of ``CORRECTION_BLOCK`` poses (each pose on its own)."""
+    parts = [
+        correct_poses(grasped, environment, X[a : a + CORRECTION_BLOCK], elements,
+                      threshold=threshold)
+        for a in range(0, len(X), CORRECTION_BLOCK)
+    ]  # fmt: skip
+    Xk, b, a, c = (np.concatenate(v) for v in zip(*parts, strict=True))
+    return Xk, b, a, c
 
 
 def correct_one(

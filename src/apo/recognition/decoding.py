@@ -190,17 +190,16 @@ def reachable(feasible: BoolArray) -> BoolArray:
 
 
 def near_pairs(obs: IntArray, k_count: int, window: int) -> BoolArray:
-    """Pairs of candidates observed within ``window`` frames of each other, shape (K, K)."""
+    """Pairs of candidates observed within ``window`` frames of each other, shape (K, K).
+
+    The frames are scanned in overlapping windows of ``window + step + 1`` frames
+    (``step = window // 2``); working memory ``K x K`` whatever the number of frames.
+    """
     n = len(obs)
     near = np.zeros((k_count, k_count), dtype=bool)
-    # Candidates present in each window of frames [t, t + window].
-    onehot = np.zeros((n + 1, k_count))
-    onehot[np.arange(n) + 1, obs] = 1.0
-    cum = np.cumsum(onehot, axis=0)
     step = max(1, window // 2)
     for a in range(0, n, step):
-        b = min(n, a + window + step + 1)
-        present = np.flatnonzero(cum[b] - cum[a] > 0)
+        present = np.unique(obs[a : min(n, a + window + step + 1)])
         near[np.ix_(present, present)] = True
     return near
 

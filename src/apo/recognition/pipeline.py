@@ -193,9 +193,9 @@ def recognize_frames(
 
 #: With a noise level (estimated or given), the threshold is ``NOISE_THRESHOLD_FACTOR``
 #: deviations of a contact distance, but at least this share of :func:`default_threshold`
-#: (which stays the threshold when no noise is known). 1: the default is the floor
-#: (docs/recognition.md says why not a quarter, which was tried).
-NOISE_FLOOR_SHARE = 1.0
+#: (which stays the threshold when no noise is known). A quarter: on clean poses a real gap
+#: of a few millimetres is not a contact (docs/recognition.md, "Threshold").
+NOISE_FLOOR_SHARE = 0.25
 
 #: Passes of recognition again with the contact residuals' noise (drift), at most.
 CONTACT_PASSES = 2

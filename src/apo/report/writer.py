@@ -36,6 +36,7 @@ __all__ = [
     "PlotWorker",
     "ReportWriter",
     "frames_csv",
+    "frames_csv_chunks",
     "gc_paused",
     "model_ref",
     "model_ref_as",
@@ -170,6 +171,20 @@ def frames_csv(rec: Recognition) -> str:
     converged, repaired``, then, when the recognition keeps its poses, the observed and the
     corrected pose ``obs_x_<u>, obs_y_<u>, obs_z_<u>, obs_qw, obs_qx, obs_qy, obs_qz,
     cor_x_<u> .. cor_qz`` (quaternions wxyz, ``qw >= 0``; ``<u>`` = the task's units).
+    The text of :func:`frames_csv_chunks` joined.
+    """
+    return "".join(frames_csv_chunks(rec))
+
+
+#: Frames per chunk of ``frames.csv`` formatted at once (:func:`frames_csv_chunks`).
+CSV_BLOCK_FRAMES = 4096
+
+
+def frames_csv_chunks(rec: Recognition, block: int = CSV_BLOCK_FRAMES) -> Iterator[str]:
+    """``frames.csv`` (:func:`frames_csv`) as text chunks: the header, then ``block`` frames each.
+
+    Only one block's rows are formatted at a time (plain floats: numpy scalars format
+    slowly), so writing the file takes working memory of one block, not of the file.
     """
     from apo.task import UNITS
 
@@ -180,22 +195,27 @@ def frames_csv(rec: Recognition) -> str:
     Xo = np.asarray(getattr(rec, "X_observed", np.zeros((0, 4, 4))), dtype=np.float64)
     Xc = np.asarray(getattr(rec, "X_corrected", np.zeros((0, 4, 4))), dtype=np.float64)
     poses = n > 0 and Xo.shape == (n, 4, 4) and Xc.shape == (n, 4, 4)
+    fmt = "{},{:.6f},{},{},{:.6g},{:.6g},{},{}"
     if poses:
         for p in ("obs", "cor"):
             head += "".join(f",{p}_{c}_{u}" for c in "xyz") + "".join(f",{p}_q{c}" for c in "wxyz")
-        both = np.concatenate([_pose_columns(Xo, k), _pose_columns(Xc, k)], axis=1).tolist()
-    obs, conv, rep = (
-        np.asarray(v, dtype=np.int64).tolist() for v in (rec.observed, rec.converged, rec.repaired)
-    )
-    before, after = ((np.asarray(v, dtype=np.float64) * k).tolist() for v in
-                     (rec.residual_before, rec.residual_after))  # fmt: skip
-    times = np.asarray(rec.times, dtype=np.float64).tolist()
-    cols: list[Any] = [range(n), times, rec.state_of_frame, obs, before, after, conv, rep]
-    fmt = "{},{:.6f},{},{},{:.6g},{:.6g},{},{}"
-    if poses:  # one format call per line, on plain floats (numpy scalars format slowly)
-        cols += list(zip(*both, strict=True))
         fmt += _POSE_FMT
-    return "\n".join([head, *map(fmt.format, *cols)]) + "\n"
+    yield head + "\n"
+    for a in range(0, n, max(1, block)):
+        rows = slice(a, min(n, a + max(1, block)))
+        obs, conv, rep = (
+            np.asarray(v, dtype=np.int64)[rows].tolist()
+            for v in (rec.observed, rec.converged, rec.repaired)
+        )
+        before, after = ((np.asarray(v, dtype=np.float64)[rows] * k).tolist() for v in
+                         (rec.residual_before, rec.residual_after))  # fmt: skip
+        times = np.asarray(rec.times, dtype=np.float64)[rows].tolist()
+        cols: list[Any] = [range(rows.start, rows.stop), times, rec.state_of_frame[rows], obs,
+                           before, after, conv, rep]  # fmt: skip
+        if poses:  # one format call per line, on plain floats
+            both = np.concatenate([_pose_columns(Xo[rows], k), _pose_columns(Xc[rows], k)], axis=1)
+            cols += list(zip(*both.tolist(), strict=True))
+        yield "\n".join(map(fmt.format, *cols)) + "\n"
 
 
 def task_document(rec: Recognition) -> tuple[dict[str, Any], str]:
@@ -262,7 +282,7 @@ def write_recognition(
     doc, text = task if task is not None else task_document(rec)
     written["task"] = outs.write_text("task.json", text)
     with gc_paused():
-        written["frames"] = outs.write_text("frames.csv", frames_csv(rec))
+        written["frames"] = outs.write_chunks("frames.csv", frames_csv_chunks(rec))
     if want_plot:
         if not (submitted and worker is not None and worker.result(png)):
             from apo.report.plot import plot_dof

@@ -1,0 +1,103 @@
+"""The batched global search (apo.perception.search): ICP of many candidates at once."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from apo.perception.example import peg_and_slot
+from apo.perception.register import ModelCloud, initialise
+from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+from apo.spatial import invert_pose, rotation_angle, transform_points
+from apo.symmetry import symmetries
+
+
+def _visible(model: ModelCloud, X_CM: np.ndarray) -> np.ndarray:
+    """Dense samples facing the camera at the origin, camera frame (noise-free)."""
+    towards = invert_pose(X_CM)[:3, :3] @ -X_CM[:3, 3]
+    return transform_points(X_CM, model.dense_points[model.dense_normals @ towards > 0])
+
+
+def _pose(rotvec: list[float], t: list[float]) -> np.ndarray:
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    X[:3, 3] = t
+    return X
+
+
+def test_batch_icp_converges_from_several_starts_at_once() -> None:
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    X_true = _pose([0.3, -0.8, 0.5], [0.01, -0.02, 0.35])
+    rng = np.random.default_rng(0)
+    P = voxel_subsample(_visible(model, X_true), 600, rng)
+    starts = []
+    for _ in range(5):  # up to 6 deg and 4 mm off
+        d = _pose(list(rng.normal(0, 0.05, 3)), list(rng.normal(0, 0.002, 3)))
+        starts.append(invert_pose(X_true @ d))
+    T = np.stack(starts)
+    for dist in (0.012, 0.004):
+        T = batch_icp(P, model, T, distance=dist, scale=dist / 2, iterations=30, dense=True)
+    for t in T:
+        X = invert_pose(t)
+        assert np.linalg.norm(X[:3, 3] - X_true[:3, 3]) < 2e-4
+        assert rotation_angle(X[:3, :3].T @ X_true[:3, :3]) < np.radians(0.2)
+    fit = inlier_fraction(P, model, T, 0.001)
+    assert np.all(fit > 0.95)
+    far = inlier_fraction(P, model, invert_pose(_pose([0, 0, 0], [0, 0, 0.5]))[None], 0.001)
+    assert far[0] < 0.05
+
+
+def test_distinct_poses_counts_symmetric_twins_once() -> None:
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    syms = [s.S[:3, :3] for s in symmetries(*peg)]
+    assert len(syms) == 2
+    X = _pose([0.2, 0.1, 0.3], [0.0, 0.0, 0.4])
+    twin = X.copy()
+    twin[:3, :3] = X[:3, :3] @ syms[1]
+    twin[:3, 3] = X[:3, 3] + X[:3, :3] @ (model.centroid - syms[1] @ model.centroid)
+    other = _pose([0.2, 0.1, 0.9], [0.0, 0.0, 0.4])
+    T = np.stack([invert_pose(M) for M in (X, twin, other, X)])
+    assert distinct_poses(T, model, syms, limit=10) == [0, 2]
+    assert distinct_poses(T, model, None, limit=10) == [0, 1, 2]
+    assert distinct_poses(T, model, None, limit=1) == [0]
+
+
+def test_voxel_subsample_spreads_points_evenly() -> None:
+    rng = np.random.default_rng(1)
+    # A dense patch and a sparse one of the same size: both keep a comparable share.
+    dense = rng.uniform([0, 0, 0], [0.05, 0.05, 0.001], (20000, 3))
+    sparse = rng.uniform([0.1, 0, 0], [0.15, 0.05, 0.001], (1000, 3))
+    P = np.vstack([dense, sparse])
+    sub = voxel_subsample(P, 400, rng)
+    assert len(sub) == 400
+    share = np.mean(sub[:, 0] > 0.075)
+    assert 0.3 < share < 0.7  # random subsampling would keep about 5 %
+    assert len(voxel_subsample(P[:100], 400, rng)) == 100
+
+
+def test_initialise_with_noise_and_clutter() -> None:
+    # Noise of 0.5 mm and a fifth of the points clutter (a hand beside the part).
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    rng = np.random.default_rng(2)
+    syms = symmetries(*peg)
+    for seed in range(3):
+        R = Rotation.random(random_state=seed).as_rotvec()
+        X_true = _pose(list(R), [0.01, 0.0, 0.4])
+        P = _visible(model, X_true)
+        P = P[rng.choice(len(P), 1500, replace=False)] + rng.normal(0, 5e-4, (1500, 3))
+        clutter = X_true[:3, 3] + rng.uniform(-0.01, 0.01, (300, 3)) + [0.05, 0.0, -0.02]
+        res = initialise(
+            np.vstack([P, clutter]), model, inlier_distance=0.0015, seed=seed,
+            symmetry_rotations=[s.S[:3, :3] for s in syms],
+        )  # fmt: skip
+        errs = []
+        for s in syms:
+            T = X_true @ s.S
+            errs.append(
+                np.linalg.norm(res.X_CM[:3, 3] - T[:3, 3]) * 1e3
+                + np.degrees(rotation_angle(res.X_CM[:3, :3].T @ T[:3, :3]))
+            )
+        assert min(errs) < 1.0, (seed, errs)
