@@ -75,3 +75,18 @@ def test_grasped_mask_in_front_of_environment() -> None:
     assert grasped_mask(objects, depth, env, threshold=0.004).tolist() == [
         [False, True, True, False]
     ]
+
+
+def test_learnt_colour_accepts_the_parts_and_not_the_hand() -> None:
+    from apo.perception.segment import learn_colour
+
+    rng = np.random.default_rng(0)
+    for part in ((0.55, 0.55, 0.55), (0.20, 0.35, 0.75), (0.35, 0.30, 0.25)):
+        shade = rng.uniform(0.4, 1.0, (500, 1))  # shading changes brightness, not chromaticity
+        px = np.clip(np.array(part) * shade * 255 + rng.normal(0, 2, (500, 3)), 0, 255)
+        model = learn_colour(px.astype(np.uint8))
+        assert model.used
+        assert model.mask(px.astype(np.uint8)[:, None, :]).mean() > 0.95
+        skin = np.array([[[217, 153, 115]]], dtype=np.uint8)
+        assert not model.mask(skin)[0, 0]
+    assert not learn_colour(np.zeros((10, 3), dtype=np.uint8)).used  # too few pixels

@@ -28,6 +28,7 @@ def test_random_variants_cover_the_documented_ranges() -> None:
     assert {v.table for v in vs} == {"grey", "white", "textured"}
     assert {v.camera for v in vs} == set(CAMERAS) and {v.demo for v in vs} == set(DEMOS)
     assert {v.hand for v in vs} == {True, False} == {v.background for v in vs}
+    assert {v.parts for v in vs} == {"white", "table", "blue"}
     assert random_variant(7) == random_variant(7)
 
 

@@ -81,11 +81,11 @@ def track_from_args(
         if args.init_environment
         else None
     )
-    colour = (
-        ColourModel(_colour_arg(args.colour), args.colour_tolerance)
-        if args.colour
-        else ColourModel.white()
-    )
+    colour: ColourModel | None = None  # learnt from the recording
+    if args.colour and args.colour.strip().lower() == "none":
+        colour = ColourModel.any_colour()
+    elif args.colour and args.colour.strip().lower() != "auto":
+        colour = ColourModel(_colour_arg(args.colour), args.colour_tolerance)
     if not 0.0 <= args.min_confidence <= 1.0:
         raise InputFormatError(f"--min-confidence must be in [0, 1], got {args.min_confidence}")
     options = TrackOptions(colour=colour, min_confidence=args.min_confidence)
@@ -284,7 +284,9 @@ def add_tracking_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--colour",
         metavar="RGB",
-        help='colour of the objects, "r g b" in 0..255 (default white)',
+        help='colour of the objects, "r g b" in 0..255, a cue besides the depth; "auto" '
+        '(default): learnt from the environment found by depth; "none": depth alone '
+        "(the paper's parts were white: 255 255 255)",
     )
     p.add_argument(
         "--colour-tolerance",

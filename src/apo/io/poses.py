@@ -395,15 +395,15 @@ def _scene_poses_fast(
     """
     if any(len(scene) != n_models for scene in scenes):
         return None
-    rows = [lines[j].split() for scene in scenes for j in scene]
-    try:
-        table = np.array(rows, dtype=np.float64)
+    rows = [lines[j] for scene in scenes for j in scene]
+    try:  # numpy's C parser: no Python string per number (correctly rounded, as float())
+        table = np.loadtxt(rows, dtype=np.float64, comments=None, ndmin=2)
     except ValueError:  # ragged rows or a token that is not a number
         return None
     if table.ndim != 2 or table.shape[1] != 8 or not np.isfinite(table).all():
         return None
     tags = table[:, 0]
-    if not all(r[0].lstrip("+-").isdigit() for r in rows):
+    if not all(r.split(None, 1)[0].lstrip("+-").isdigit() for r in rows):
         return None
     axis, angle = table[:, 4:7], table[:, 7]
     norm = np.linalg.norm(axis, axis=1)

@@ -832,18 +832,52 @@ def initialise(
     Registration
         The most confident candidate (any of its symmetric twins).
     """
-    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+    from apo.perception.search import centres
 
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
         return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
     rng = np.random.default_rng(seed)
-    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
-    sub = voxel_subsample(P, max_points, rng)
-    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
     score: dict[str, Any] = {"inlier_distance": inlier_distance, "depth": depth, "camera": camera,
              "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
              "occluder": occluder}  # fmt: skip
+    search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
+              "symmetry_rotations": symmetry_rotations}  # fmt: skip
+    found = centres(P, model.diameter)
+    if len(found) == 1:
+        return _search(P, model, score, **search)
+    # Points spread far wider than the model (a hand and forearm in view when the colour
+    # is not used): a search about each dense cluster, on the points near it.
+    best: Registration | None = None
+    for c in found:
+        near = P[np.linalg.norm(P - c, axis=1) <= 0.75 * model.diameter]
+        if len(near) < 10:
+            continue
+        r = _search(near, model, score, **search)
+        if best is None or (r.confidence, r.quality) > (best.confidence, best.quality):
+            best = r
+    assert best is not None
+    return best
+
+
+def _search(
+    P: FloatArray,
+    model: ModelCloud,
+    score: dict[str, Any],
+    *,
+    loss: str,
+    max_points: int,
+    keep: int,
+    rng: np.random.Generator,
+    symmetry_rotations: npt.ArrayLike | None,
+) -> Registration:
+    """Run the coarse-to-fine search of :func:`initialise` about the centroid of ``P``."""
+    from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
+
+    inlier_distance = score["inlier_distance"]
+    few = voxel_subsample(P, min(max_points, COARSE_POINTS), rng)
+    sub = voxel_subsample(P, max_points, rng)
+    full = voxel_subsample(P, max(max_points, REFINE_POINTS), rng)
     # Every candidate orientation about the points' centroid pushed back along the ray (the
     # visible surface is nearer than the model's centroid: a sixth and a third of its size).
     c = P.mean(0)

@@ -513,6 +513,7 @@ def render_demonstration(
     table_colour: str = "textured",
     arm: bool = False,
     background_frames: int = 1,
+    part_colour: tuple[float, float, float] = WHITE,
 ) -> Path:
     """Render a demonstration into a frames folder (the layout of ``docs/perception.md``).
 
@@ -555,6 +556,8 @@ def render_demonstration(
     background_frames : int, optional
         Depth frames of the background, each with its own noise (``background/depth.png``,
         ``depth_000001.png``, ...).
+    part_colour : (float, float, float), optional
+        Albedo of the two parts, 0..1 (default :data:`WHITE`, as the paper's).
 
     Returns
     -------
@@ -615,12 +618,15 @@ def render_demonstration(
     # object (and the hand) per frame, composited by depth (the same z-buffer test).
     still = render_scene(
         [*static, E], [*static_poses, XCE], camera,
-        albedo=[*static_albedo, WHITE], textured=[tex] + [False] * len(static) if table else None,
+        albedo=[*static_albedo, part_colour],
+        textured=[tex] + [False] * len(static) if table else None,
     )  # fmt: skip
     for i, X in enumerate(XEG):
         XCG = XCE @ X
         moving = [G] if H is None else [G, H]
-        r = render_scene(moving, [XCG] * len(moving), camera, albedo=[WHITE, SKIN][: len(moving)])
+        r = render_scene(
+            moving, [XCG] * len(moving), camera, albedo=[part_colour, SKIN][: len(moving)]
+        )
         rgb, depth = _noisy(_composite(still, r), model, rng)
         write_frame(out, i, rgb, depth, camera)
     return out

@@ -27,7 +27,7 @@ from apo.typing import FloatArray
 if TYPE_CHECKING:
     from apo.perception.register import ModelCloud
 
-__all__ = ["batch_icp", "distinct_poses", "inlier_fraction", "voxel_subsample"]
+__all__ = ["batch_icp", "centres", "distinct_poses", "inlier_fraction", "voxel_subsample"]
 
 
 def _tree(model: ModelCloud, dense: bool) -> Any:
@@ -213,3 +213,31 @@ def distinct_poses(
                 continue
         kept.append(k)
     return kept
+
+
+def centres(points: npt.ArrayLike, diameter: float, *, limit: int = 4) -> list[FloatArray]:
+    """Return where to search for a model of ``diameter`` in ``points``: one or more centres.
+
+    The points' centroid when they are about the model's size (90 % within 0.6 diameters);
+    else the centres of the densest clusters at the model's scale (cells of half a diameter
+    holding at least 5 % of the points, each moved to the mean of the points within half a
+    diameter, no two within half a diameter), densest first, at most ``limit``.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    c = P.mean(axis=0)
+    if len(P) == 0 or np.percentile(np.linalg.norm(P - c, axis=1), 90) <= 0.6 * diameter:
+        return [c]
+    edge = diameter / 2
+    _, inverse, counts = np.unique(
+        np.floor(P / edge).astype(np.int64), axis=0, return_inverse=True, return_counts=True
+    )
+    inverse = inverse.ravel()
+    out: list[FloatArray] = []
+    for cell in np.argsort(-counts, kind="stable"):
+        if counts[cell] < 0.05 * len(P) or len(out) >= limit:
+            break
+        m = P[inverse == cell].mean(axis=0)
+        m = P[np.linalg.norm(P - m, axis=1) <= edge].mean(axis=0)
+        if all(np.linalg.norm(m - o) > edge for o in out):
+            out.append(m)
+    return out or [c]

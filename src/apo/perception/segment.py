@@ -36,6 +36,7 @@ __all__ = [
     "foreground_from_background",
     "foreground_from_plane",
     "grasped_mask",
+    "learn_colour",
     "occupancy",
     "static_mask",
 ]
@@ -74,10 +75,15 @@ class ColourModel:
         """Return a model that accepts every pixel (colour not used)."""
         return cls((1.0, 1.0, 1.0), 2.0, 0.0)
 
+    @property
+    def used(self) -> bool:
+        """False for a model every pixel passes (:meth:`any_colour`): the colour is not a cue."""
+        return not (self.max_chroma >= 2.0 and self.min_value <= 0.0)
+
     def mask(self, rgb: npt.ArrayLike) -> BoolArray:
         """Return the pixels of ``rgb`` (uint8, shape (H, W, 3)) that have the objects' colour."""
         im = np.asarray(rgb)
-        if self.max_chroma >= 2.0 and self.min_value <= 0.0:
+        if not self.used:
             return np.ones(im.shape[:2], dtype=bool)
         c = im.astype(np.float32)
         s = c.sum(axis=2)
@@ -338,3 +344,31 @@ def grasped_mask(
     env = np.asarray(environment_depth)
     on_env = (env > 0) & (np.abs(d - env) <= threshold)
     return np.asarray(np.asarray(objects, dtype=bool) & ~on_env, dtype=bool)
+
+
+def learn_colour(rgb: npt.ArrayLike, *, min_pixels: int = 200) -> ColourModel:
+    """Learn an object's colour model from pixels known to show it (e.g. the environment's).
+
+    The reference is the median chromaticity of the pixels; the chromaticity tolerance 1.5
+    times the 95th percentile of their distances to it (within 0.03 to 0.12: shading,
+    sensor noise and mixed pixels at edges); the minimum brightness half the 5th percentile
+    of theirs (shadows). Fewer than ``min_pixels`` pixels: :meth:`ColourModel.any_colour`.
+
+    Parameters
+    ----------
+    rgb : ndarray of uint8, shape (N, 3)
+        The pixels' colours.
+    """
+    c = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
+    if len(c) < min_pixels:
+        return ColourModel.any_colour()
+    chroma = c / np.maximum(c.sum(axis=1, keepdims=True), 1.0)
+    ref = np.median(chroma, axis=0)
+    ref = ref / max(float(ref.sum()), 1e-9)
+    spread = float(np.percentile(np.linalg.norm(chroma - ref, axis=1), 95))
+    value = float(np.percentile(c.max(axis=1), 5)) / 255.0
+    return ColourModel(
+        (float(ref[0]), float(ref[1]), float(ref[2])),
+        float(np.clip(1.5 * spread, 0.03, 0.12)),
+        float(np.clip(0.5 * value, 0.0, 0.5)),
+    )

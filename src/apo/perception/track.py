@@ -41,6 +41,7 @@ from apo.perception.frames import Camera, FrameSource, masked_median, open_frame
 from apo.perception.register import (
     ModelCloud,
     Registration,
+    evaluate,
     initialise,
     orthonormalised,
     register,
@@ -56,12 +57,13 @@ from apo.perception.segment import (
     foreground_from_background,
     foreground_from_plane,
     grasped_mask,
+    learn_colour,
     occupancy,
     static_mask,
 )
 from apo.spatial import invert_pose, transform_points
 from apo.symmetry import Symmetry, nearest_twin, symmetries
-from apo.typing import BoolArray, FloatArray
+from apo.typing import BoolArray, FloatArray, IntArray
 
 __all__ = ["TrackOptions", "TrackResult", "track_frames"]
 
@@ -72,14 +74,24 @@ class TrackOptions:
 
     Attributes
     ----------
-    colour : ColourModel
-        Colour of the two objects (default: white, as in the paper).
+    colour : ColourModel or None
+        Colour of the two objects, a cue besides the depth. None (default): learnt from the
+        recording, from the environment's pixels once the environment is found by depth
+        alone (:func:`learn_colour`; the two parts are assumed to share a colour, as in the
+        paper, whose parts were white). :meth:`ColourModel.any_colour`: depth alone (the
+        colour images are then not decoded).
     foreground_threshold : float
         A pixel is in front of the background (or above the support plane) by more than this.
     environment_threshold : float
         A pixel within this depth of the rendered environment model is the environment's.
     static_fraction : float
         Occupancy above which a pixel is the environment's (occupancy histogram).
+    same_surface_fraction : float
+        ... and the share of the frames in which it must show the same surface (its median
+        depth within ``noise_sigmas`` noise sigmas, at least ``environment_threshold``): a
+        hand and forearm moving slowly occupy pixels as often as the environment does, at
+        changing depths (0.6 and 0.7 lost the environment's pixels hidden part of the time
+        behind the moving part: up to 1.2 mm of error on the variants, measured).
     histogram_frames : int
         Frames (evenly spaced) used for the histogram and the environment's pose.
     inlier_distance : float
@@ -128,10 +140,11 @@ class TrackOptions:
         Seed of every random choice (subsampling, RANSAC).
     """
 
-    colour: ColourModel = field(default_factory=ColourModel.white)
+    colour: ColourModel | None = None
     foreground_threshold: float = 0.004
     environment_threshold: float = 0.004
     static_fraction: float = 0.7
+    same_surface_fraction: float = 0.5
     histogram_frames: int = 30
     inlier_distance: float = 0.002
     min_confidence: float = 0.8
@@ -221,15 +234,24 @@ def _displacement(model: ModelCloud, X_a: FloatArray, X_b: FloatArray) -> float:
     return float(np.linalg.norm(moved, axis=1).max())
 
 
-def _largest_component(mask: BoolArray) -> BoolArray:
+def _components(mask: BoolArray, *, limit: int = 3, share: float = 0.1) -> tuple[IntArray, int]:
+    """Label the largest connected components of ``mask``: 1 the largest, 2 the next...
+
+    At most ``limit``, each at least ``share`` of the largest; other pixels 0.
+    """
     from scipy import ndimage
 
-    labels, n = ndimage.label(mask)
-    if n <= 1:
-        return mask
+    lab, n = ndimage.label(mask)
+    labels = np.asarray(lab, dtype=np.int64)
+    if n == 0:
+        return labels, 0
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
-    return np.asarray(labels == int(np.argmax(sizes)), dtype=bool)
+    order = np.argsort(-sizes, kind="stable")[:limit]
+    order = order[sizes[order] >= share * sizes[order[0]]]
+    relabel = np.zeros(n + 1, dtype=labels.dtype)
+    relabel[order] = np.arange(1, len(order) + 1)
+    return relabel[labels], len(order)
 
 
 def _noise_model(src: FrameSource, options: TrackOptions) -> DepthNoiseModel:
@@ -260,6 +282,8 @@ class _Segmenter:
         self.camera = src.camera
         self.options = options
         self.noise = noise
+        # Depth alone until the colour is learnt (options.colour None: see learn_colour).
+        self.colour = options.colour or _ANY
         _, bg_depth = src.background()
         self.background = bg_depth
         # The difference of a depth and the background's: sqrt(1 + pi / 2n) sigma for the
@@ -305,11 +329,15 @@ class _Segmenter:
         if bg is not None:  # the difference of two noisy depths
             thr = self.threshold(depth, t, self.difference)
             fg &= foreground_from_background(depth, bg, threshold=thr)
+        if not self.colour.used:
+            return fg
         # The colour test only where the depth found something (a fraction of the pixels).
         out = np.zeros(fg.shape, dtype=bool)
-        out[fg] = self.options.colour.mask(rgb[fg][:, None, :])[:, 0]
+        out[fg] = self.colour.mask(rgb[fg][:, None, :])[:, 0]
         return out
 
+
+_ANY = ColourModel.any_colour()
 
 Window = tuple[int, int, int, int]
 _Frame = tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]
@@ -336,35 +364,51 @@ def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> 
 
 def _environment_points(
     src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame]
-) -> tuple[FloatArray, npt.NDArray[np.float32]]:
-    """Return the environment's points (median depth of its pixels) and the median depth.
+) -> tuple[list[FloatArray], npt.NDArray[np.float32]]:
+    """Return the static regions' points (median depth of their pixels) and the median depth.
 
-    The frames decoded are kept in ``cache`` for the tracking loop (decoded once).
+    The regions are the largest connected components of the static pixels, largest first
+    (:func:`_components`). The frames decoded are kept in ``cache`` for the tracking loop
+    (decoded once).
     """
     n = len(src)
     idx = np.unique(np.linspace(0, n - 1, min(n, options.histogram_frames)).round().astype(int))
     masks = np.empty((len(idx), src.camera.height, src.camera.width), dtype=bool)
     depths = np.empty(masks.shape, dtype=np.float32)
     for k, i in enumerate(idx):
-        rgb, depth = cache[int(i)] = _read(src, int(i))
+        rgb, depth = cache[int(i)] = _read(src, int(i), colour=options.colour != _ANY)
         masks[k] = seg.objects(rgb, depth)
         depths[k] = depth
     static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
     # Per-pixel median depth of the static pixels (noise averaged; passages removed),
     # sorted at those pixels only (a tenth of the image or less).
     median = np.zeros(static.shape, dtype=np.float32)
-    median[static] = masked_median(depths[:, static], masks[:, static])
+    d_s, m_s = depths[:, static], masks[:, static]
+    med = masked_median(d_s, m_s)
+    # Static is the same surface in many frames, not only something in front of the table:
+    # a hand and forearm that move slowly are occupied as often as the environment (without
+    # the colour cue), but at changing depths.
+    thr = seg.threshold(med, options.environment_threshold, 1)
+    same = (m_s & (np.abs(d_s - med) <= thr)).mean(axis=0) >= options.same_surface_fraction
+    median[static] = np.where(same, med, 0.0)
     # For the surface check: every pixel, over at most 9 of the frames (the sort is the cost).
     few = depths[:: max(1, -(-len(depths) // 9))]
     median_all = masked_median(few, few > 0)
-    env = _largest_component(static & (median > 0))
-    return src.camera.backproject(median, env), median_all
+    lab, n = _components(static & (median > 0))
+    return [src.camera.backproject(median, lab == k) for k in range(1, n + 1)], median_all
 
 
-def _read(src: FrameSource, i: int, cache: dict[int, _Frame] | None = None) -> _Frame:
+NO_COLOUR = np.zeros((0, 0, 3), dtype=np.uint8)
+"""The colour image of a frame when the colour model is not used (the PNG is not decoded)."""
+
+
+def _read(
+    src: FrameSource, i: int, cache: dict[int, _Frame] | None = None, *, colour: bool = True
+) -> _Frame:
+    """Return frame ``i``'s colour (:data:`NO_COLOUR` unless ``colour``) and depth images."""
     if cache is not None and i in cache:
         return cache.pop(i)
-    return src.rgb(i), src.depth(i)
+    return (src.rgb(i) if colour else NO_COLOUR), src.depth(i)
 
 
 def _as_pose(X: npt.ArrayLike | None, name: str) -> FloatArray | None:
@@ -461,24 +505,39 @@ def _open_scene(
 def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     """Register the environment on the median depth of its pixels over many frames."""
     opt, E, cam = scene.opt, scene.E, scene.camera
-    env_pts, median_depth = _environment_points(scene.src, scene.seg, opt, scene.cache)
-    if len(env_pts) < opt.min_points:
+    parts, median_depth = _environment_points(scene.src, scene.seg, opt, scene.cache)
+    parts = [p for p in parts if len(p) >= opt.min_points]
+    if not parts:
         raise TrackingLostError(
-            f"environment object not found: only {len(env_pts)} static object pixels "
-            f"(check the colour model and the background; or give its pose with "
-            f"--init-environment)"
+            "environment object not found: too few static object pixels "
+            "(check the colour model and the background; or give its pose with "
+            "--init-environment)"
         )
-    if len(env_pts) > 20000:
-        rng = np.random.default_rng(opt.seed)
-        env_pts = env_pts[rng.choice(len(env_pts), 20000, replace=False)]
-    kw = scene.settings(env_pts)
-    if XE0 is not None:
-        env = register(env_pts, E, XE0, depth=median_depth, camera=cam, **kw)
-    else:
-        env = initialise(
-            env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
-            symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E], **kw,
-        )  # fmt: skip
+    if XE0 is not None:  # the static region nearest the given pose
+        centre = transform_points(XE0, E.centroid[None])[0]
+        parts = [min(parts, key=lambda p: float(np.linalg.norm(p.mean(0) - centre)))]
+    env: Registration | None = None
+    # The largest static region first; the next ones (a forearm held still is static too
+    # when the colour is not used) only while no confident pose is found.
+    for env_pts in parts:
+        if len(env_pts) > 20000:
+            rng = np.random.default_rng(opt.seed)
+            env_pts = env_pts[rng.choice(len(env_pts), 20000, replace=False)]
+        kw = scene.settings(env_pts)
+        if XE0 is not None:
+            r = register(env_pts, E, XE0, depth=median_depth, camera=cam, **kw)
+        else:
+            r = initialise(
+                env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
+                symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E], **kw,
+            )  # fmt: skip
+        if env is None or r.confidence > env.confidence:
+            env, env_points = r, env_pts
+        if env.confidence >= opt.min_confidence:
+            break
+    assert env is not None
+    if XE0 is None:
+        env = _trimmed(env, env_points, scene, median_depth)
     if env.confidence < opt.min_confidence:
         hint = (
             "; give its pose in the camera frame with --init-environment "
@@ -494,6 +553,44 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     scene.env = env
     scene.X_CE = _twin(env.X_CM, XE0, scene.syms_E, E)
     scene.env_depth, _ = rasterize(transform_points(scene.X_CE, E.vertices), E.triangles, cam)
+    if opt.colour is None:
+        scene.seg.colour = _environment_colour(scene)
+
+
+def _trimmed(
+    env: Registration, points: FloatArray, scene: _Scene, depth: npt.NDArray[np.float32]
+) -> Registration:
+    """Refine the environment's pose on the points its model explains.
+
+    The static region can hold more than the environment (a hand held still); the result
+    is kept when it is not less confident.
+    """
+    from apo.perception.search import batch_icp, voxel_subsample
+
+    kw = scene.settings(points)
+    inl = kw["inlier_distance"]
+    _, dist = scene.E.residuals(transform_points(invert_pose(env.X_CM), points))
+    near = points[dist <= 2 * inl]
+    if len(near) < scene.opt.min_points:
+        return env
+    sub = voxel_subsample(near, 3000, np.random.default_rng(scene.opt.seed))
+    T = batch_icp(sub, scene.E, invert_pose(env.X_CM)[None], distance=2 * inl, scale=inl,
+                  iterations=30, dense=True, loss=scene.opt.loss)  # fmt: skip
+    r = evaluate(sub, scene.E, invert_pose(T[0]), inlier_distance=inl, depth=depth,
+                 camera=scene.camera, free_space_tolerance=kw["free_space_tolerance"])  # fmt: skip
+    return r if r.confidence >= env.confidence else env
+
+
+def _environment_colour(scene: _Scene, frames: int = 5) -> ColourModel:
+    """Learn the parts' colour from the environment's pixels (depth within the noise)."""
+    pixels = []
+    for rgb, depth in list(scene.cache.values())[:frames]:
+        if rgb.shape[:2] != depth.shape:
+            continue
+        on = (scene.env_depth > 0) & (depth > 0)
+        tol = scene.seg.threshold(depth[on], scene.opt.environment_threshold, 1)
+        pixels.append(rgb[on][np.abs(depth[on] - scene.env_depth[on]) <= tol])
+    return learn_colour(np.concatenate(pixels) if pixels else np.zeros((0, 3)))
 
 
 class _Observed(NamedTuple):
@@ -752,11 +849,12 @@ def track_frames(
     src, n = scene.src, len(scene.src)
     tracker = _Tracker(scene, XG0)
     with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
-        pending = pool.submit(_read, src, 0, scene.cache)
+        colour = scene.seg.colour.used  # else the colour PNGs are not decoded at all
+        pending = pool.submit(_read, src, 0, scene.cache, colour=colour)
         for i in range(n):
             rgb, depth = pending.result()
             if i + 1 < n:
-                pending = pool.submit(_read, src, i + 1, scene.cache)
+                pending = pool.submit(_read, src, i + 1, scene.cache, colour=colour)
             tracker.step(i, rgb, depth)
             if progress is not None:
                 progress(i + 1, n)

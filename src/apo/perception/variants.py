@@ -18,11 +18,25 @@ import numpy as np
 
 from apo.perception.camera import Camera
 from apo.perception.example import SYNTHETIC_UP, RenderedDemo, polyhedron_triangles
-from apo.perception.render import DepthNoise, pose_looking_at, render_demonstration
+from apo.perception.render import (
+    TABLE_COLOURS,
+    WHITE,
+    DepthNoise,
+    pose_looking_at,
+    render_demonstration,
+)
 from apo.spatial import invert_pose
 from apo.typing import FloatArray
 
-__all__ = ["CAMERAS", "DEMOS", "Variant", "random_variant", "render_variant", "variant_camera"]
+__all__ = [
+    "CAMERAS",
+    "DEMOS",
+    "PART_COLOURS",
+    "Variant",
+    "random_variant",
+    "render_variant",
+    "variant_camera",
+]
 
 
 CAMERAS: dict[str, tuple[float, float, float, float, int, int]] = {
@@ -33,6 +47,12 @@ CAMERAS: dict[str, tuple[float, float, float, float, int, int]] = {
     "orbbec_astra": (570.3, 570.3, 319.5, 239.5, 640, 480),
 }
 """Depth-camera intrinsics ``(fx, fy, cx, cy, width, height)`` (typical factory values)."""
+
+PART_COLOURS: dict[str, tuple[float, float, float]] = {
+    "white": WHITE,
+    "blue": (0.20, 0.35, 0.75),
+}
+"""Albedo of the parts by :attr:`Variant.parts` (besides "table": the table's colour)."""
 
 DEMOS = ("peg_in_hole_2d", "square_peg_in_hole")
 """The demonstrations variants are drawn from: a T-peg into a U-slot, a square peg."""
@@ -68,6 +88,8 @@ class Variant:
     n_frames : int
     seed : int
         Seed of the sensor noise.
+    parts : {"white", "table", "blue"}
+        Colour of the two parts (:data:`PART_COLOURS`; "table": the table's own colour).
     """
 
     demo: str
@@ -83,6 +105,7 @@ class Variant:
     n_frames: int = 120
     seed: int = 0
     background_frames: int = 5
+    parts: str = "white"
 
     def label(self) -> str:
         """Short description for tables."""
@@ -90,6 +113,7 @@ class Variant:
             f"{self.demo} {self.camera} {self.distance:.2f}m {self.elevation:.0f}deg "
             f"{self.table} c={self.noise * 1e3:.1f} drop={self.dropout:.2f}"
             f"{' hand+arm' if self.hand else ''}{' bg' if self.background else ''}"
+            f" parts={self.parts}"
         )
 
 
@@ -109,6 +133,7 @@ def random_variant(seed: int, *, demo: str | None = None, n_frames: int = 120) -
         background=bool(rng.random() < 0.5),
         n_frames=n_frames,
         seed=seed,
+        parts=("white", "table", "blue")[int(rng.integers(3))],  # drawn last: seeds keep
     )
 
 
@@ -161,5 +186,6 @@ def render_variant(v: Variant, out_dir: str | Path) -> RenderedDemo:
         units="m", noise=noise, seed=v.seed, hand=v.hand, arm=v.hand,
         background=v.background, table_colour=v.table, background_frames=v.background_frames,
         up=SYNTHETIC_UP.get(demo.name, (0.0, 0.0, 1.0)),
+        part_colour=TABLE_COLOURS[v.table] if v.parts == "table" else PART_COLOURS[v.parts],
     )  # fmt: skip
     return RenderedDemo(out, demo, G, E, cam, X_CE, X_CE @ demo.X_EG_true[0])

@@ -203,10 +203,13 @@ def build_states(
     ids = state_letters(len(runs))
     first_id: dict[int, str] = {}
     states: list[State] = []
+    placed: dict[int, _Placed] = {}  # per candidate: its element records, once
     for (a, b), sid in zip(runs, ids, strict=True):
         k = int(path[a])
         cand = analysed_at(candidates, k)
         X_s, frame, converged = _state_pose(a, b, k, observed, corrected, cand)
+        if k not in placed:
+            placed[k] = _Placed(cand)
         dof_r = cand.dof
         states.append(
             State(
@@ -216,7 +219,7 @@ def build_states(
                 singular=bool(dof_r.singular),
                 fig25=cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25)),
                 six={sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")},
-                elements=_at_pose(cand, X_s),
+                elements=placed[k].at(X_s),
                 X_EG=np.asarray(X_s, dtype=np.float64).copy(),
                 pose_frame=frame,
                 pose_converged=converged,
@@ -227,23 +230,32 @@ def build_states(
     return runs, ids, states
 
 
-def _at_pose(cand: CandidateState, X_s: FloatArray) -> tuple[Element, ...]:
-    """Return the candidate's elements with their points where they are at the pose ``X_s``.
+class _Placed:
+    """A candidate's element records, made once, placed at the pose of each of its runs.
 
     The candidate's elements were found at its representative pose (``cand.X_EG``, shared by
-    every run of the same contact state), the state's pose is the best frame of this run: in
+    every run of the same contact state), the state's pose is the best frame of the run: in
     a sliding state the two lie far apart (a block slid 70 mm along a wall). A point on a
     vertex or edge of the grasped object (kinds VF, VE, VV, EE) moves with it; a point on a
     vertex of the environment (FV, EV) stays. So ``task.json``'s points hold at its poses.
+    A demonstration repeated has thousands of runs of a few candidates: the records (and
+    the inverse of the representative pose) are made once per candidate, not per run.
     """
-    T = X_s @ invert_pose(cand.X_EG)
-    out = []
-    for e in cand.state.elements:
-        r = element_record(e)
-        if r.kind not in ("FV", "EV"):
-            r = Element(r.kind, r.grasped, r.environment, T[:3, :3] @ r.point + T[:3, 3], r.normals)
-        out.append(r)
-    return tuple(out)
+
+    def __init__(self, cand: CandidateState) -> None:
+        self.inv = invert_pose(cand.X_EG)
+        self.records = [element_record(e) for e in cand.state.elements]
+
+    def at(self, X_s: FloatArray) -> tuple[Element, ...]:
+        """Return the elements with their points where they are at the pose ``X_s``."""
+        T = X_s @ self.inv
+        out = []
+        for r in self.records:
+            if r.kind not in ("FV", "EV"):
+                r = Element(r.kind, r.grasped, r.environment, T[:3, :3] @ r.point + T[:3, 3],
+                            r.normals)  # fmt: skip
+            out.append(r)
+        return tuple(out)
 
 
 def _state_pose(
