@@ -340,49 +340,72 @@ def _fps_band(demo: Any) -> str:
     return "other"
 
 
-def _accuracy_row(kind: str, sigma: float, seeds: int) -> dict[str, Any]:
-    """Runs of one noise kind and level over ``seeds`` seeds: shares recognised exactly."""
+def _accuracy_seed(job: tuple[str, float, int]) -> list[tuple[str, str, str, bool, float]]:
+    """Recognise every demonstration of one seed: ``(name, variant, fps band, exact, s)``."""
     from apo.recognition import recognize_frames
 
+    kind, sigma, seed = job
+    out = []
+    for name, demo in _demos(seed).items():
+        noisy = _noisy(demo, kind, sigma, seed)
+        t0 = time.perf_counter()
+        rec = recognize_frames(noisy.grasped, noisy.environment, noisy.times, noisy.X_EG)
+        secs = time.perf_counter() - t0
+        variant = demo.meta["variant"]["name"] if name == "random variant" else ""
+        out.append((name, variant, _fps_band(demo), exact_result(noisy, rec.task), secs))
+    return out
+
+
+def _accuracy_row(kind: str, sigma: float, seeds: int, jobs: int = 1) -> dict[str, Any]:
+    """Runs of one noise kind and level over ``seeds`` seeds: shares recognised exactly.
+
+    ``jobs`` > 1 spreads the seeds over that many processes (same runs, same results).
+    """
     ok: dict[str, int] = {}
     runs: dict[str, int] = {}
     shapes: dict[str, list[int]] = {}
     bands: dict[str, list[int]] = {}
     secs: list[float] = []
-    for seed in range(seeds):
-        for name, demo in _demos(seed).items():
-            noisy = _noisy(demo, kind, sigma, seed)
-            t0 = time.perf_counter()
-            rec = recognize_frames(noisy.grasped, noisy.environment, noisy.times, noisy.X_EG)
-            secs.append(time.perf_counter() - t0)
-            good = exact_result(noisy, rec.task)
+    work = [(kind, sigma, seed) for seed in range(seeds)]
+    if jobs > 1:
+        import multiprocessing
+
+        with multiprocessing.Pool(jobs) as pool:
+            results = pool.map(_accuracy_seed, work)
+    else:
+        results = [_accuracy_seed(job) for job in work]
+    for rows in results:
+        for name, variant, band, good, s in rows:
+            secs.append(s)
             ok[name] = ok.get(name, 0) + good
             runs[name] = runs.get(name, 0) + 1
             if name == "random variant":
-                variant = demo.meta["variant"]["name"]
                 shapes.setdefault(variant, [0, 0])[0] += good
                 shapes[variant][1] += 1
-                band = bands.setdefault(_fps_band(demo), [0, 0])
-                band[0] += good
-                band[1] += 1
+                bands.setdefault(band, [0, 0])[0] += good
+                bands[band][1] += 1
     total = sum(ok.values()) / sum(runs.values())
     return {
         "kind": kind, "sigma": sigma, "runs_per_demo": seeds, "runs": sum(runs.values()),
         "exact": {k: v / runs[k] for k, v in ok.items()}, "exact_all": total,
         "random_by_kind": {k: {"exact": a / n, "runs": n} for k, (a, n) in sorted(shapes.items())},
         "random_by_fps": {k: {"exact": a / n, "runs": n} for k, (a, n) in sorted(bands.items())},
-        "seconds_per_run": float(np.mean(secs)),
+        "seconds_per_run": float(np.mean(secs)), "processes": jobs,
     }  # fmt: skip
 
 
 def bench_accuracy(
-    seeds: int, sigmas: tuple[float, ...], kinds: tuple[str, ...], levels: dict[str, Any]
+    seeds: int,
+    sigmas: tuple[float, ...],
+    kinds: tuple[str, ...],
+    levels: dict[str, Any],
+    jobs: int = 1,
 ) -> dict[str, Any]:
     """Share of runs recognised exactly, per demonstration, noise kind and level."""
     rows = []
     for kind in kinds:
         for sigma in levels.get(kind, sigmas):
-            row = _accuracy_row(kind, sigma, seeds)
+            row = _accuracy_row(kind, sigma, seeds, jobs)
             rows.append(row)
             print(
                 f"  {kind:<9} sigma {sigma:>3}: exact {row['exact_all']:6.1%}  "
@@ -416,6 +439,7 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=5, help="fresh-process runs (median)")
     ap.add_argument("--only", default="", help="whole process: comma list of case labels")
     ap.add_argument("--skip", default="", help="comma list of: speed,whole,accuracy")
+    ap.add_argument("--jobs", type=int, default=1, help="accuracy: processes (seeds spread)")
     args = ap.parse_args()
     seeds, repeat = (5, 1) if args.quick else (args.seeds, args.repeat)
     sigmas = tuple(float(v) for v in args.sigmas.split(","))
@@ -444,7 +468,7 @@ def main() -> int:
             k: tuple(float(v) for v in vals.split(","))
             for k, vals in (item.split("=") for item in args.levels.split(";") if item)
         }
-        _section(res, "accuracy", lambda: bench_accuracy(seeds, sigmas, kinds, levels))
+        _section(res, "accuracy", lambda: bench_accuracy(seeds, sigmas, kinds, levels, args.jobs))
 
     print()
     print("speed (whole recognition, best of", repeat, "runs)")

@@ -10,6 +10,7 @@ from apo.contact import ContactState
 from apo.recognition.bridges import Bridge
 from apo.recognition.distances import DistanceCache
 from apo.recognition.types import (
+    BoolArray,
     CandidateState,
     FloatArray,
     IntArray,
@@ -17,7 +18,7 @@ from apo.recognition.types import (
     StateKey,
 )
 
-__all__ = ["candidate_costs", "emission_costs"]
+__all__ = ["candidate_costs", "emission_costs", "enclosed_frames"]
 
 
 def emission_costs(
@@ -26,11 +27,19 @@ def emission_costs(
     touching: Sequence[frozenset[tuple[tuple[str, int], tuple[str, int]]]],
     obs: IntArray,
     w: SegmentationCosts,
+    enclosed: BoolArray | None = None,
 ) -> FloatArray:
-    """Cost of every candidate at every frame (``docs/recognition.md``), shape (N, K)."""
+    """Cost of every candidate at every frame (``docs/recognition.md``), shape (N, K).
+
+    ``enclosed`` (N,): the frames of :func:`enclosed_frames`, where the free state costs
+    ``w.enclosed`` more.
+    """
     n = len(obs)
     ukeys = sorted({e for key in keys for e in key})
     emission = np.zeros((n, len(keys)))
+    if enclosed is not None and w.enclosed:
+        free = [k for k, key in enumerate(keys) if not key]
+        emission[:, free] += w.enclosed * enclosed[:, None]
     if not ukeys:
         return emission
     upos = {e: u for u, e in enumerate(ukeys)}
@@ -61,6 +70,21 @@ def emission_costs(
     return emission
 
 
+def enclosed_frames(keys: Sequence[StateKey], labels: IntArray, outliers: BoolArray) -> BoolArray:
+    """Frames observed in contact whose neighbours are too, shape (N,).
+
+    ``labels`` index the observed states ``keys`` (the empty key: free); an outlier frame
+    counts as in contact (it tells nothing). At such a frame nothing says G was away from
+    E: the free state costs ``enclosed`` more there (:class:`SegmentationCosts`).
+    """
+    free = np.array([not key for key in keys], dtype=bool)
+    contact = ~free[labels] | outliers
+    out = contact.copy()
+    out[1:] &= contact[:-1]
+    out[:-1] &= contact[1:]
+    return out & ~outliers
+
+
 def candidate_costs(
     dists: DistanceCache,
     keys: Sequence[StateKey],
@@ -70,6 +94,7 @@ def candidate_costs(
     obs: IntArray,
     w: SegmentationCosts,
     start: int = 0,
+    enclosed: BoolArray | None = None,
 ) -> FloatArray:
     """Cost of every analysed candidate at every frame, shape (N, K).
 
@@ -77,10 +102,10 @@ def candidate_costs(
     no more at its two boundary frames than the observed state it joins there (it happens
     between them and holds that state's contacts too); a candidate whose correction
     converged at no frame costs ``fail`` more per frame; one not analysed is excluded.
-    ``dists`` and ``obs`` may be a block of frames starting at frame ``start`` (the bridges'
-    boundary frames are frame numbers of the whole sequence).
+    ``dists``, ``obs`` and ``enclosed`` may be a block of frames starting at frame
+    ``start`` (the bridges' boundary frames are frame numbers of the whole sequence).
     """
-    emission = emission_costs(dists, keys, [s.touching for s in states], obs, w)
+    emission = emission_costs(dists, keys, [s.touching for s in states], obs, w, enclosed)
     k_obs = len(keys) - len(bridges)
     for b, (_cand, (f1, f2), (k1, k2)) in enumerate(bridges, start=k_obs):
         for f, k in ((f1 - start, k1), (f2 - start, k2)):

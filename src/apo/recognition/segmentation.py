@@ -22,7 +22,7 @@ import numpy as np
 from apo.recognition.analysis import Analysis
 from apo.recognition.candidates import canonical_ids
 from apo.recognition.contacts import Observations
-from apo.recognition.costs import candidate_costs, emission_costs
+from apo.recognition.costs import candidate_costs, emission_costs, enclosed_frames
 from apo.recognition.decoding import BLOCK_FRAMES, UniformViterbi, Viterbi
 from apo.recognition.distances import DistanceCache
 from apo.recognition.types import (
@@ -95,9 +95,10 @@ def first_pass(
     labels = observed.labels
     dec = UniformViterbi(len(observed.keys), w.switch)
     own = np.empty(scene.n)
+    enc = enclosed_frames(observed.keys, labels, scene.outliers)
     for a, b in frame_blocks(scene.n, block):
         lab = labels[a:b]
-        e = emission_costs(BlockDistances(dists, a, b), observed.keys, touching, lab, w)
+        e = emission_costs(BlockDistances(dists, a, b), observed.keys, touching, lab, w, enc[a:b])
         own[a:b] = e[np.arange(b - a), lab]
         dec.feed(np.where(scene.outliers[a:b, None], 0.0, e))
     return dec.path()[0], own
@@ -145,10 +146,11 @@ def segment(
     dec = Viterbi(trans[np.ix_(columns, columns)])
     costs = np.empty((scene.n, len(columns)))
     labels = observed.labels
+    enc = enclosed_frames(observed.keys, labels, scene.outliers)
     for a, b in frame_blocks(scene.n, block):
         e = candidate_costs(
             BlockDistances(dists, a, b), an.keys, states, an.candidates, an.bridges,
-            labels[a:b], w, start=a,
+            labels[a:b], w, start=a, enclosed=enc[a:b],
         )[:, columns]  # fmt: skip
         e = np.where(scene.outliers[a:b, None] & np.isfinite(e), 0.0, e)
         costs[a:b] = e

@@ -66,6 +66,10 @@ class SegmentationCosts:
         kept only if its elements are within ``reach * theta`` at the observed pose it is
         corrected from, and the correction moves no vertex more than twice that distance
         plus ``theta`` (it did not converge to a distant solution).
+    enclosed : float
+        Per frame of the free state where that frame and its neighbours are all observed in
+        contact (G seen near E throughout): a free run between two contacts needs G seen
+        away from E at some frame, not only contacts at the edge of the threshold.
     """
 
     claim: float = 1.0
@@ -76,6 +80,7 @@ class SegmentationCosts:
     window: int = 10
     reach: float = 3.0
     same: float = 6.0
+    enclosed: float = 1.0
 
 
 @dataclass(frozen=True)
