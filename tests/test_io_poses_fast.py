@@ -48,3 +48,34 @@ def test_a_bad_line_is_still_named_by_the_line_by_line_reader(tmp_path, bad, mat
     p = _write(tmp_path, [good, good, bad, good])
     with pytest.raises(poses.InputFormatError, match=match):
         poses.read_pose_list(p)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_plain_csv_read_by_numpy_equals_the_csv_module_reader(tmp_path, monkeypatch, seed):
+    """Header or not, extra columns, CR LF, blank lines, spaces around fields: same arrays."""
+    rng = np.random.default_rng(seed)
+    n, extra = int(rng.integers(2, 30)), int(rng.integers(0, 3))
+    names = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"] + [f"c{j}" for j in range(extra)]
+    rows = []
+    for i in range(n):
+        vals = [i * 0.1 + rng.uniform(0, 0.05), *rng.normal(scale=50, size=3)]
+        q = rng.normal(size=4)
+        vals += [*(q / np.linalg.norm(q)), *rng.normal(size=extra)]
+        pad = " " if rng.random() < 0.3 else ""
+        rows.append(",".join(f"{pad}{float(v)!r}{pad}" for v in vals))
+        if rng.random() < 0.2:
+            rows.append(" , ,")  # a row of blank fields: skipped
+    if extra:
+        rows[-1] = rows[-1].rsplit(",", 1)[0] + ",nan"  # extra columns may hold nan
+    text = ([",".join(names)] if seed % 2 == 0 else []) + rows
+    p = tmp_path / "demo.csv"
+    p.write_bytes(("\r\n" if seed == 2 else "\n").join(text).encode() + b"\n")
+    assert poses._csv_fast(p) is not None
+    fast = poses.read_pose_csv(p, units="mm")
+    monkeypatch.setattr(poses, "_csv_fast", lambda path: None)
+    slow = poses.read_pose_csv(p, units="mm")
+    assert np.array_equal(fast.X_EG, slow.X_EG) and np.array_equal(fast.times, slow.times)
+    assert fast.lines.tolist() == slow.lines.tolist()
+    assert fast.extra.keys() == slow.extra.keys()
+    for k in fast.extra:
+        assert np.array_equal(fast.extra[k], slow.extra[k], equal_nan=True)
