@@ -18,12 +18,15 @@ Contact finding: time per frame of ``ContactFinder`` on
   three poses each (resting, turned about z, lifted by half the threshold).
 
 Columns: ``batch`` is ``find_batch`` over all the frames (targets: <= 0.2 ms per frame for
-the T-peg/U-hole, <= 20 ms for 10,000 triangles), ``find`` one frame at a time, ``naive``
+the T-peg/U-hole, <= 20 ms for 10,000 triangles), ``labels`` ``find_labels`` over all the
+frames (the state keys only, what recognition runs per frame), ``find`` one frame at a time,
+``naive``
 the all-pairs search (``find_naive``), ``before`` the per-frame ``find`` of the contact
 finder at the revision ``--before`` (default: the last one before the search was
 vectorised), loaded from git into this run; the ratios are ``naive / batch`` and
 ``before / batch``. ``same`` says that every variant found the same states (element keys and
-touching pairs) at every frame. Times are the best of several repeats, warm per-model data.
+touching pairs) at every frame, and ``find_labels`` the same grouping of the frames. Times
+are the best of several repeats, warm per-model data.
 
 Run ``.venv/bin/python benchmarks/core.py [--quick] [--before REV | --no-before]``; prints
 two tables and writes ``benchmarks/results/core.json``. Timings on a shared machine are
@@ -227,6 +230,12 @@ def _same(a: Sequence[Any], b: Sequence[Any]) -> bool:
     return all(x.key == y.key and x.touching == y.touching for x, y in zip(a, b, strict=True))
 
 
+def _same_labels(states: Sequence[Any], labels: Any) -> bool:
+    """``find_labels``' labels group the frames as the keys of ``find_batch``'s states do."""
+    index: dict[Any, int] = {}
+    return [index.setdefault(s.key, len(index)) for s in states] == labels.tolist()
+
+
 def bench_contacts(
     quick: bool, before: ModuleType | None
 ) -> tuple[list[dict[str, Any]], list[str]]:
@@ -243,8 +252,10 @@ def bench_contacts(
         states = finder.find_batch(X)  # builds the per-model data and local cones
         setup = time.perf_counter() - t0
         batch = _best(lambda f=finder, x=X: f.find_batch(x), reps, repeat) / n
+        labels = _best(lambda f=finder, x=X: f.find_labels(x), reps, repeat) / n
+        same = _same_labels(states, finder.find_labels(X)[0])
         single = _best(lambda f=finder, x=X: [f.find(p) for p in x], reps, repeat) / n
-        same = _same(states, [finder.find(p) for p in X])
+        same = same and _same(states, [finder.find(p) for p in X])
         # The naive search is all pairs: skip it where that takes minutes; once on big ones.
         pairs = max(len(G.edges) * len(E.edges), 10 * len(G.vertices) * len(E.faces))
         naive: float | None = None
@@ -275,6 +286,7 @@ def bench_contacts(
             "touching_per_frame": float(np.mean([len(s.touching) for s in states])),
             "setup_s": setup,
             "batch_ms": batch * 1e3,
+            "labels_ms": labels * 1e3,
             "find_ms": single * 1e3,
             "naive_ms": None if naive is None else naive * 1e3,
             "before_ms": before_ms,
@@ -291,6 +303,7 @@ def bench_contacts(
         rb = "-" if r["before_over_batch"] is None else f"{r['before_over_batch']:.1f}x"
         print(
             f"{r['scene']:42s} {n:4d} {r['elements_per_frame']:6.1f} {r['batch_ms']:8.3f} "
+            f"{r['labels_ms']:8.3f} "
             f"{r['find_ms']:8.3f} {nv:>9s} {b:>8s} {rn:>8s} "
             f"{rb:>6s} {sc['target_ms']:6.1f} {'yes' if r['meets_target'] else 'NO':>4s} "
             f"{'yes' if same else 'NO':>4s}",
@@ -321,7 +334,8 @@ def main() -> None:
     print("\nContact finding, ms per frame; ratios naive / batch and before / batch")
     print(f"  before: {'skipped, ' if before is None else ''}{why}")
     print(
-        f"{'scene':42s} {'frms':>4s} {'elems':>6s} {'batch':>8s} {'find':>8s} {'naive':>9s} "
+        f"{'scene':42s} {'frms':>4s} {'elems':>6s} {'batch':>8s} {'labels':>8s} {'find':>8s} "
+        f"{'naive':>9s} "
         f"{'before':>8s} {'naive/b':>8s} {'bef/b':>6s} {'target':>6s} {'met':>4s} {'same':>4s}"
     )
     contacts, notes = bench_contacts(args.quick, before)

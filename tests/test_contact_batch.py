@@ -158,3 +158,17 @@ def test_observations_equal_the_states_of_every_frame_grouped(seed: int) -> None
     assert got.keys == ref.keys
     _assert_same_states(got.states, ref.states)
     assert len(got.keys) > 1
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.3, 10.0])
+def test_squared_distances_by_one_matrix_product_are_within_their_slack(offset: float) -> None:
+    # The prefilters of the distance tests use |p|^2 + |c|^2 - 2 p.c plus a slack: it must
+    # bound the rounding for points near and far from the origin (no pair is ever dropped).
+    from apo.contact._arrays import _sq_dist, _sq_dist_slack
+
+    rng = np.random.default_rng(int(offset * 10))
+    P = offset + rng.normal(scale=0.05, size=(300, 3))
+    C = P[rng.integers(300, size=40)] + rng.normal(scale=1e-4, size=(40, 3))
+    exact = np.sum((P[:, None, :] - C[None, :, :]) ** 2, axis=2)
+    assert np.max(np.abs(_sq_dist(P, C) - exact)) <= _sq_dist_slack(P, C)
+    assert _sq_dist_slack(P, C) < 1e-12 * max(1.0, offset) ** 2

@@ -19,6 +19,7 @@ from apo.contact._arrays import (
     _norm,
     _pairs_from_ball,
     _sq_dist,
+    _sq_dist_slack,
 )
 from apo.contact.elements import Feature
 from apo.contact.model_data import _ModelData
@@ -98,7 +99,8 @@ def _near_features(
     dense = len(Q) * max(md.nv, len(md.TA)) <= dense_limit
     # vertices
     if dense:
-        ii, jj = np.nonzero(_sq_dist(Q, md.V) <= (d * _SPHERE_MARGIN) ** 2)
+        slack = _sq_dist_slack(Q, md.V)
+        ii, jj = np.nonzero(_sq_dist(Q, md.V) <= (d * _SPHERE_MARGIN) ** 2 + slack)
         dist = _norm(Q[ii] - md.V[jj])
         ok = dist <= d
         vv = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
@@ -109,7 +111,8 @@ def _near_features(
         vv = (rows[i], j, dist)
     # edges (dense: pre-filtered by the edges' bounding spheres)
     if dense:
-        ii, jj = np.nonzero(_sq_dist(Q, md.E_mid) <= ((md.E_half + d) * _SPHERE_MARGIN) ** 2)
+        r2 = ((md.E_half + d) * _SPHERE_MARGIN) ** 2 + slack
+        ii, jj = np.nonzero(_sq_dist(Q, md.E_mid) <= r2)
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
         i, s = _pairs_from_ball(te.query_ball_point(Q, d + er), np.arange(len(Q)))
@@ -122,7 +125,7 @@ def _near_features(
     # faces via triangles, pre-filtered by the plane distance (and bounding spheres)
     if dense:
         near = np.abs(Q @ md.tri_n.T - md.tri_off[None, :]) <= d
-        near &= _sq_dist(Q, md.tri_c) <= ((md.tri_r + d) * _SPHERE_MARGIN) ** 2
+        near &= _sq_dist(Q, md.tri_c) <= ((md.tri_r + d) * _SPHERE_MARGIN) ** 2 + slack
         ii, tt_ = np.nonzero(near)
     else:
         tv, tt, town, tr, te, eown, er = md.trees()
@@ -133,19 +136,24 @@ def _near_features(
         h = np.abs(_dot(Q[ii], md.tri_n[tt_]) - md.tri_off[tt_])
         keep = h <= d
         ii, tt_ = ii[keep], tt_[keep]
+    return _Near(vv, ee, _nearest_face(md, Q, rows, ii, tt_, d))
+
+
+def _nearest_face(
+    md: _ModelData, Q: FloatArray, rows: IntArray, ii: IntArray, tt_: IntArray, d: float
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """(point, face, distance) within ``d`` from candidate (point, triangle) pairs."""
     dist = _point_triangle_distance(Q[ii], md.TA[tt_], md.TB[tt_], md.TC[tt_])
     ok = dist <= d
     ii, ff, dist = ii[ok], md.tri_face[tt_[ok]], dist[ok]
-    if len(ii):
-        key = ii * md.nf + ff
-        order = np.lexsort((dist, key))
-        key, dist = key[order], dist[order]
-        first = np.concatenate([[True], key[1:] != key[:-1]])
-        key, dist = key[first], dist[first]
-        fff = (rows[key // md.nf], key % md.nf, dist)
-    else:
-        fff = (_EMPTY_I, _EMPTY_I, _EMPTY_F)
-    return _Near(vv, ee, fff)
+    if len(ii) == 0:
+        return _EMPTY_I, _EMPTY_I, _EMPTY_F
+    key = ii * md.nf + ff
+    order = np.lexsort((dist, key))
+    key, dist = key[order], dist[order]
+    first = np.concatenate([[True], key[1:] != key[:-1]])
+    key, dist = key[first], dist[first]
+    return rows[key // md.nf], key % md.nf, dist
 
 
 def _near_features_naive(md: _ModelData, pts: FloatArray, d: float) -> _Near:
@@ -218,11 +226,12 @@ def _edge_pairs(
     if len(sel) == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I
     if len(sel) * e.ne <= 10 * limit:  # box overlaps are cheap
-        eb_lo = np.minimum(e.E0, e.E1)
-        eb_hi = np.maximum(e.E0, e.E1)
-        ov = (hi[sel, None, 0] >= eb_lo[None, :, 0]) & (lo[sel, None, 0] <= eb_hi[None, :, 0])
+        lo_s, hi_s = lo[sel].T, hi[sel].T
+        eb_lo, eb_hi = e.E_lo.T, e.E_hi.T
+        ov = (hi_s[0][:, None] >= eb_lo[0]) & (lo_s[0][:, None] <= eb_hi[0])
         for k in (1, 2):
-            ov &= (hi[sel, None, k] >= eb_lo[None, :, k]) & (lo[sel, None, k] <= eb_hi[None, :, k])
+            ov &= hi_s[k][:, None] >= eb_lo[k]
+            ov &= lo_s[k][:, None] <= eb_hi[k]
         ia, ib = np.nonzero(ov)
         ia = sel[ia]
     else:

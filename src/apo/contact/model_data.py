@@ -141,6 +141,8 @@ class _ModelData:
         self.edge_dir = np.asarray(poly.edge_directions, dtype=np.float64)
         self.E_mid = 0.5 * (self.E0 + self.E1)
         self.E_half = 0.5 * np.linalg.norm(self.E1 - self.E0, axis=1)
+        self.E_lo = np.minimum(self.E0, self.E1)  # the edges' bounding boxes
+        self.E_hi = np.maximum(self.E0, self.E1)
         tri = np.concatenate(poly.face_triangles).astype(np.int64)
         self.tri_face = np.repeat(
             np.arange(self.nf, dtype=np.int64), [len(t) for t in poly.face_triangles]

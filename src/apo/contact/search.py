@@ -265,7 +265,13 @@ class _Work:
 
 
 def _work(
-    g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray, *, naive: bool
+    g: _ModelData,
+    e: _ModelData,
+    d: float,
+    angle_tol: float,
+    X: FloatArray,
+    *,
+    naive: bool,
 ) -> _Work | None:
     """Broad phase, distance tests, candidate features and their pairs of pieces at ``X``.
 

@@ -229,7 +229,7 @@ def projective_icp(
     occluder: npt.ArrayLike | None = None,
     max_pixels: int = 8000,
     max_angle: float = np.radians(75.0),
-    tolerance: float = 1e-6,
+    tolerance: float = 1e-5,
     damping: float = 1e-4,
     silhouette: bool = True,
     constraint: Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]] | None = None,

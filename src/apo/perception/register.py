@@ -133,7 +133,8 @@ class ModelCloud:
         self.centroid = self.points.mean(axis=0)
         self._pcd: Any = None
         self._dense: Any = None
-        self._tree: Any = None
+        self._tree: Any = None  # k-d trees of the dense and sparse samples (also search.py)
+        self._sparse_tree: Any = None
         self._faces: FacePlanes | None = None
 
     @property
@@ -177,19 +178,24 @@ class ModelCloud:
         return side, dist
 
     def nearest_sample(
-        self, points_M: npt.ArrayLike
+        self, points_M: npt.ArrayLike, *, dense: bool = True
     ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.intp]]:
-        """Return the nearest dense sample's signed plane distance, distance and index.
+        """Return the nearest sample's signed plane distance, distance and index.
 
-        Points in the model frame; the k-d tree is built once.
+        Points in the model frame; ``dense`` False: among the sparse samples (``points``,
+        ``normals``; the plane distance is as exact on flat faces, the choice of face near
+        edges coarser). The k-d trees are built once.
         """
         from scipy.spatial import cKDTree
 
-        if self._tree is None:
-            self._tree = cKDTree(self.dense_points)
         P = np.asarray(points_M, dtype=np.float64)
-        dist, idx = self._tree.query(P)
-        side = np.einsum("ij,ij->i", P - self.dense_points[idx], self.dense_normals[idx])
+        pts, nrm = (self.dense_points, self.dense_normals) if dense else (self.points, self.normals)
+        if dense and self._tree is None:
+            self._tree = cKDTree(pts)
+        if not dense and self._sparse_tree is None:
+            self._sparse_tree = cKDTree(pts)
+        dist, idx = (self._tree if dense else self._sparse_tree).query(P)
+        side = np.einsum("ij,ij->i", P - pts[idx], nrm[idx])
         return side, np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.intp)
 
 
@@ -697,13 +703,16 @@ out (the signed distance to the obstacle's nearest dense sample is approximate a
 
 
 def _non_penetration(
-    model: ModelCloud, obstacle: tuple[ModelCloud, FloatArray], *, samples: int = 600
+    model: ModelCloud, obstacle: tuple[ModelCloud, FloatArray], *, samples: int = 300
 ) -> Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]]:
     """Return the rows pushing the model's samples out of the obstacle.
 
     See ``projective_icp``'s ``constraint``: for a sample ``PENETRATION_ALLOWANCE`` or more
     inside, the residual is its depth along the obstacle's outward normal there (two solids
     cannot overlap: where the parts are hidden inside each other, this is what holds the pose).
+    300 samples of the model; the obstacle's dense samples give the normal (its sparse
+    samples, a tenth of the time, chose wrong faces near its edges: the 95th percentile of
+    the rotation error of variant seed 4 went from 0.8 to 1.4 deg).
     """
     other, X_CO = obstacle
     X_OC = invert_pose(X_CO)
@@ -715,7 +724,7 @@ def _non_penetration(
         X_OM = X_OC @ X_CM
         q_O = transform_points(X_OM, pts)
         near = np.nonzero(np.all((q_O > lo) & (q_O < hi), axis=1))[0]
-        side, _, idx = other.nearest_sample(q_O[near])
+        side, _, idx = other.nearest_sample(q_O[near], dense=True)
         inside = side < -PENETRATION_ALLOWANCE
         n_M = other.dense_normals[idx[inside]] @ X_OM[:3, :3]  # R_OM^T n_O, row-wise
         return pts[near[inside]], n_M, side[inside] + PENETRATION_ALLOWANCE
