@@ -227,7 +227,7 @@ def projective_icp(
     start_scale: float = 0.006,
     iterations: int = 15,
     occluder: npt.ArrayLike | None = None,
-    max_pixels: int = 8000,
+    max_pixels: int = 4000,
     max_angle: float = np.radians(75.0),
     tolerance: float = 1e-5,
     damping: float = 1e-4,
