@@ -24,7 +24,7 @@ from apo.recognition.candidates import canonical_ids
 from apo.recognition.contacts import Observations
 from apo.recognition.costs import candidate_costs, emission_costs, enclosed_frames
 from apo.recognition.decoding import BLOCK_FRAMES, UniformViterbi, Viterbi
-from apo.recognition.distances import DistanceCache
+from apo.recognition.distances import DistanceCache, element_distances
 from apo.recognition.types import (
     BoolArray,
     CandidateState,
@@ -74,11 +74,26 @@ class BlockDistances(DistanceCache):
         cache = self.whole.cache
         missing = [k for k in dict.fromkeys(keys) if k not in cache]
         if missing:
-            self.whole.get(missing)
+            _fill(self.whole, missing)
         if not keys:
             return np.zeros((self.stop - self.start, 0))
         rows = slice(self.start, self.stop)
         return np.stack([cache[k][rows] for k in keys], axis=1)
+
+
+def _fill(whole: DistanceCache, keys: list[ElementKey]) -> None:
+    """Compute the distances of ``keys`` at every frame into ``whole``, a block at a time.
+
+    One ``(frames x keys)`` array is made and filled block by block (the same values, row
+    by row, as one pass over every frame); the cache keeps its columns.
+    """
+    G, E, X = whole.args
+    out = np.empty((len(X), len(keys)))
+    for a, b in frame_blocks(len(X)):
+        out[a:b] = element_distances(G, E, X[a:b], keys)
+        out[a:b] /= whole.theta
+    for j, k in enumerate(keys):
+        whole.cache[k] = out[:, j]
 
 
 def first_pass(
