@@ -286,3 +286,23 @@ def test_repeated_runs_write_byte_identical_sets(tmp_path, capsys):
     )
     for name, data in sets[0].items():
         assert data == sets[1][name], name
+
+
+@pytest.mark.parametrize("given", [None, "3"])
+def test_cli_sets_one_openblas_thread_unless_the_user_did(given):
+    # Set before numpy's first import (OpenBLAS reads it when loaded); a user's value wins.
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    code = (
+        "import sys, os; import apo.cli; assert 'numpy' not in sys.modules; "
+        "print(os.environ['OPENBLAS_NUM_THREADS'])"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == (given or "1")

@@ -147,6 +147,11 @@ def test_analyze_accepts_a_frames_folder(builtin: dict, capsys: pytest.CaptureFi
     assert "30 of 30 frames tracked" in captured.err  # stdout keeps the table (or --json)
     assert "8 states" in captured.out
     assert subskills(out / "task.json") == builtin["truth"]
+    # tracked poses: the threshold floor is the whole scale-aware default (TRACKED_FLOOR_SHARE)
+    from apo.recognition import default_threshold
+
+    base_mm = default_threshold(r.demo.grasped, r.demo.environment) * 1e3
+    assert json.loads((out / "task.json").read_text())["threshold"] >= base_mm - 1e-3
     header = (out / "poses.csv").read_text().splitlines()[0]
     assert header.startswith("t,x,y,z,qw,qx,qy,qz,confidence")
     assert json.loads((out / "poses.environment.json").read_text())["units"] == "mm"

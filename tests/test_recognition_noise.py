@@ -294,3 +294,23 @@ def test_a_drifting_t_peg_keeps_its_edge_on_the_rim(seed):
     assert [tuple(s.fig25) for s in rec.task.states] == [tuple(w) for w in want]
     truth = [k for et in demo.expected_subskills for k in et.subskills]
     assert rec.task.subskill_sequence() == truth
+
+
+@pytest.mark.parametrize("seed", [3, 17])
+def test_tracked_poses_keep_the_default_as_their_floor(seed):
+    # Poses from ICP carry a smooth bias the noise estimate cannot see (docs/recognition.md,
+    # "Threshold"): with floor_share=TRACKED_FLOOR_SHARE the threshold of clean poses is the
+    # scale-aware default, with the pose-file floor a quarter of it.
+    from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
+
+    demo = synthetic.random_variant(seed)
+    base = default_threshold(demo.grasped, demo.environment)
+    X = demo.X_EG_true
+    pose_file = recognize_frames(demo.grasped, demo.environment, demo.times, X)
+    tracked = recognize_frames(
+        demo.grasped, demo.environment, demo.times, X, floor_share=TRACKED_FLOOR_SHARE
+    )
+    assert pose_file.task.threshold == pytest.approx(NOISE_FLOOR_SHARE * base)
+    assert tracked.task.threshold == pytest.approx(TRACKED_FLOOR_SHARE * base)
+    truth = [k for et in demo.expected_subskills for k in et.subskills]
+    assert tracked.task.subskill_sequence() == truth

@@ -107,3 +107,36 @@ def test_rescue_finds_the_four_corner_contacts_of_the_real_state_f(real_data_dir
     assert frame == 31 and moved < 8 * theta
     assert sorted(e.kind.value for e in state.elements) == ["VV"] * 4
     assert all((e.grasped, e.environment) in state.touching for e in observed.elements)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_candidates_analysed_from_one_batched_search_equal_one_by_one(seed):
+    # analysis.analyse corrects every pending candidate first, then searches the contact
+    # states at all their corrected poses in one find_batch per finder (states_at): each
+    # candidate must be what analysing it alone (single-pose find) gives.
+    from apo import synthetic
+    from apo.recognition.candidates import analyse_candidate, correct_best, states_at
+    from apo.recognition.contacts import observe
+    from apo.recognition.pipeline import make_scene, pose_noise
+
+    demo = synthetic.add_noise(
+        synthetic.random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, seed=seed
+    )
+    G, E, X = demo.grasped, demo.environment, demo.X_EG
+    scene = make_scene(G, E, X, None, SegmentationCosts(), pose_noise(G, X, None))
+    obs = observe(scene)
+    cost = np.random.default_rng(seed).random(len(X))
+    ks = range(len(obs.keys))
+    corrected = {k: correct_best(scene, obs.labels, k, obs.states[k], cost) for k in ks}
+    at = states_at(scene, corrected)
+    assert at, "no candidate converged: the batched path is not exercised"
+    for k in ks:
+        args = (scene, obs.labels, k, obs.keys[k], obs.states[k], cost)
+        alone = analyse_candidate(*args)
+        batched = analyse_candidate(*args, corrected=corrected[k], at=at.get(k))
+        a, b = alone.state, batched.state
+        assert a.key == b.key and a.touching == b.touching
+        for ea, eb in zip(a.elements, b.elements, strict=True):
+            assert np.array_equal(ea.point, eb.point) and np.array_equal(ea.normals, eb.normals)
+        assert batched.frame == alone.frame and batched.converged == alone.converged
+        assert np.array_equal(batched.X_EG, alone.X_EG)

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.constants import Tolerances, tol
-from apo.errors import InputFormatError
+from apo.errors import GeometryError, InputFormatError
 from apo.typing import BoolArray, FloatArray
 
 if TYPE_CHECKING:
@@ -379,21 +379,18 @@ def _highs() -> highspy.Highs:
     return h
 
 
-def _solve_lp(
+def _highs_lp(
     cost: FloatArray,
     col_lower: FloatArray,
     col_upper: FloatArray,
     a: FloatArray,
     row_lower: FloatArray,
     row_upper: FloatArray,
-    feasibility: float,
-) -> FloatArray | None:
-    """Minimise ``cost . x`` s.t. ``row_lower <= a x <= row_upper``, bounds; None if not optimal."""
+) -> Any:
+    """Return the HiGHS model of ``min cost . x``, ``row_lower <= a x <= row_upper``, bounds."""
     import highspy
 
     n_row, n_col = a.shape
-    h = _highs()
-    h.setOptionValue("primal_feasibility_tolerance", feasibility)
     lp = highspy.HighsLp()
     lp.num_col_ = n_col
     lp.num_row_ = n_row
@@ -408,6 +405,24 @@ def _solve_lp(
     lp.a_matrix_.value_ = np.ascontiguousarray(a, dtype=np.float64).ravel()
     lp.a_matrix_.num_col_ = n_col
     lp.a_matrix_.num_row_ = n_row
+    return lp
+
+
+def _solve_lp(
+    cost: FloatArray,
+    col_lower: FloatArray,
+    col_upper: FloatArray,
+    a: FloatArray,
+    row_lower: FloatArray,
+    row_upper: FloatArray,
+    feasibility: float,
+) -> FloatArray | None:
+    """Minimise ``cost . x`` s.t. ``row_lower <= a x <= row_upper``, bounds; None if not optimal."""
+    import highspy
+
+    h = _highs()
+    h.setOptionValue("primal_feasibility_tolerance", feasibility)
+    lp = _highs_lp(cost, col_lower, col_upper, a, row_lower, row_upper)
     h.passModel(lp)
     h.run()
     if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
@@ -424,6 +439,59 @@ def _solve_lp(
     return np.asarray(h.getSolution().col_value, dtype=np.float64)
 
 
+#: HiGHS settings tried, in turn, when no setting proves an optimum (:func:`_support_rescue`).
+_RESCUE_SETTINGS: tuple[dict[str, Any], ...] = (
+    {},
+    {"simplex_scale_strategy": 0},
+    {"simplex_strategy": 4},
+    {"solver": "ipm"},
+)
+
+
+def _support_rescue(lp: Any, z: FloatArray, eta: float) -> BoolArray:
+    """Support from HiGHS's feasible but unproven points of the maximal-support LP.
+
+    On some ill-conditioned cones of noisy contacts HiGHS stops with status "unknown" under
+    every setting (seen on a random T-peg variant with a 0.75 mm offset). Each point it
+    returns that satisfies ``Z y >= t`` here is a certificate: ``t_i > 1/2`` means
+    ``z_i . y > 0``, so ``i`` is in the maximal support, and so is the union over several
+    points (their sum is feasible). HiGHS's points may violate ``Z y >= 0`` by more than
+    ``eta`` (1.5e-5 was seen): a point is accepted when ``Z y >= -sqrt(eta)`` and
+    certifies the ``i`` with ``z_i . y > 1/2``, over a thousand times that slack at the
+    default ``eta`` (the LP's ``t_i <= 1`` sets the scale of ``y``). The union over the settings
+    tried is returned; it can miss part of the support only where no setting found it.
+    """
+    import highspy
+
+    k = z.shape[1]
+    slack = math.sqrt(eta)
+    found = np.zeros(z.shape[0], dtype=bool)
+    certified = False
+    for settings in _RESCUE_SETTINGS:
+        h = _quiet_highs()
+        h.setOptionValue("output_flag", False)
+        for key, value in settings.items():
+            h.setOptionValue(key, value)
+        h.passModel(lp)
+        h.run()
+        x = np.asarray(h.getSolution().col_value, dtype=np.float64)
+        if x.shape != (k + z.shape[0],) or not np.isfinite(x).all():
+            continue
+        zy = z @ x[:k]
+        if float(zy.min()) >= -slack:
+            found |= zy > 0.5
+            certified = True
+        if h.getModelStatus() == highspy.HighsModelStatus.kOptimal:
+            break
+    if not certified:
+        raise GeometryError(
+            "maximal-support LP failed: HiGHS found no feasible point of the contact cone "
+            f"({z.shape[0]} directions, {k}-dimensional null space); the contact state is "
+            "numerically degenerate"
+        )
+    return found
+
+
 def _support_1d(col: FloatArray, eta: float) -> BoolArray:
     """Support of ``{alpha z >= 0}`` for a unit vector ``z``: entries within ``eta`` are zero."""
     out = np.zeros(col.shape[0], dtype=bool)
@@ -433,26 +501,33 @@ def _support_1d(col: FloatArray, eta: float) -> BoolArray:
     return out
 
 
-def _support_lp(z: FloatArray, eta: float) -> BoolArray:
-    """LP for the maximal support of ``{Z y >= 0}``: ``max sum t``, ``Z y >= t``, ``0 <= t <= 1``.
-
-    At the optimum ``t_i = 1`` exactly on the support (sums of feasible points are feasible
-    and the cone is scale-invariant); ``i`` is taken in the support when ``t_i > 1/2``.
-    """
+def _support_lp_arrays(
+    z: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Return cost, column bounds, matrix and row bounds of :func:`_support_lp`'s LP."""
     n_col, k = z.shape
     inf = float("inf")  # = highspy.kHighsInf
-    x_opt = _solve_lp(
+    return (
         np.concatenate([np.zeros(k), -np.ones(n_col)]),
         np.concatenate([np.full(k, -inf), np.zeros(n_col)]),
         np.concatenate([np.full(k, inf), np.ones(n_col)]),
         np.hstack([z, -np.eye(n_col)]),
         np.zeros(n_col),
         np.full(n_col, inf),
-        eta,
     )
-    if x_opt is None:  # pragma: no cover - always feasible (y = 0, t = 0) and bounded
-        raise RuntimeError("maximal-support LP failed")
-    return np.asarray(x_opt[k:] > 0.5, dtype=bool)
+
+
+def _support_lp(z: FloatArray, eta: float) -> BoolArray:
+    """LP for the maximal support of ``{Z y >= 0}``: ``max sum t``, ``Z y >= t``, ``0 <= t <= 1``.
+
+    At the optimum ``t_i = 1`` exactly on the support (sums of feasible points are feasible
+    and the cone is scale-invariant); ``i`` is taken in the support when ``t_i > 1/2``.
+    """
+    args = _support_lp_arrays(z)
+    x_opt = _solve_lp(*args, eta)
+    if x_opt is None:  # always feasible (y = 0, t = 0) and bounded, but HiGHS may stop short
+        return _support_rescue(_highs_lp(*args), z, eta)
+    return np.asarray(x_opt[z.shape[1] :] > 0.5, dtype=bool)
 
 
 def _support(g: FloatArray, z: FloatArray, tolerances: Tolerances) -> BoolArray:

@@ -7,8 +7,15 @@ default runs the command and returns the exit code.
 
 from __future__ import annotations
 
-import argparse
 import os
+
+# One OpenBLAS thread unless the user says otherwise, set before numpy is first imported:
+# apo's matrix products are small (a few thousand rows at most), and OpenBLAS's worker
+# threads cost more to start and spin after each product than they save (the 41-frame
+# `apo analyze`: 0.06 s of 0.38 s CPU; docs/recognition.md, "The whole process").
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
 import sys
 import warnings
 from collections.abc import Iterator, Sequence

@@ -257,8 +257,10 @@ def _run(
 ) -> dict[str, Path]:
     from apo.io import poses
     from apo.recognition import recognize_frames
+    from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
 
     out = outs.given
+    floor_share = TRACKED_FLOOR_SHARE if demo.is_dir() else None
     if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
         from apo.cli.track import demonstration_from_frames
 
@@ -292,6 +294,7 @@ def _run(
             dem.X_EG,
             threshold=threshold,
             noise=noise,
+            floor_share=floor_share,
             progress=progress,
             units=units,
             models=(model_ref(gp, out), model_ref(ep, out)),

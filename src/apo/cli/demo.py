@@ -287,8 +287,10 @@ def replay_verdict(written: dict[str, Path], *, file: Any) -> None:
 def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -> dict[str, Path]:
     from apo.cli.analyze import print_result
     from apo.recognition import recognize_frames
+    from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
 
     dem = demonstration_from_args(args, outs)
+    tracked = bool(getattr(args, "from_frames", False))
     G, E = _write_models(dem, outs)
     rec = recognize_frames(
         G,
@@ -303,6 +305,7 @@ def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -
             ),
         ),
         source=dem.source,
+        floor_share=TRACKED_FLOOR_SHARE if tracked else None,
     )
     task = task_document(rec)
     print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for

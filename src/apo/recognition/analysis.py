@@ -18,7 +18,12 @@ import numpy as np
 
 from apo.contact import ContactState
 from apo.recognition.bridges import Bridge, bridge_candidates
-from apo.recognition.candidates import analyse_candidate, direct_possible
+from apo.recognition.candidates import (
+    analyse_candidate,
+    correct_best,
+    direct_possible,
+    states_at,
+)
 from apo.recognition.contacts import Observations
 from apo.recognition.decoding import near_pairs, reachable, run_bounds
 from apo.recognition.types import (
@@ -88,17 +93,21 @@ def analyse(
     analysed, chosen by ``path0``) within ``window`` frames of each other.
     """
     obs = observed.labels
-    for k in ks:
-        if an.candidates[k] is None:
-            an.candidates[k] = analyse_candidate(
-                scene,
-                obs,
-                k,
-                an.keys[k],
-                observed.states[k],
-                own,
-                neighbours=[observed.states[j] for j in neighbours(obs, path0, k)],
-            )
+    pending = list(dict.fromkeys(k for k in ks if an.candidates[k] is None))
+    corrected = {k: correct_best(scene, obs, k, observed.states[k], own) for k in pending}
+    at = states_at(scene, corrected)  # the contact search at every corrected pose at once
+    for k in pending:
+        an.candidates[k] = analyse_candidate(
+            scene,
+            obs,
+            k,
+            an.keys[k],
+            observed.states[k],
+            own,
+            neighbours=[observed.states[j] for j in neighbours(obs, path0, k)],
+            corrected=corrected[k],
+            at=at.get(k),
+        )
     done = np.array([c is not None for c in an.candidates])
     labels = np.where(done[obs], obs, path0)
     todo = near_pairs(labels, len(an.keys), scene.costs.window) & ~an.tested

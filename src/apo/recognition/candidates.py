@@ -17,19 +17,29 @@ from apo import dof
 from apo.contact import ContactState
 from apo.recognition.correction import correct_poses
 from apo.recognition.hypotheses import rescue
-from apo.recognition.types import CandidateState, FloatArray, IntArray, Scene, StateKey
+from apo.recognition.types import (
+    BoolArray,
+    CandidateState,
+    FloatArray,
+    IntArray,
+    Scene,
+    StateKey,
+)
 from apo.transitions import direct_transition_possible
 
 if TYPE_CHECKING:
     from apo.contact import ContactFinder
 
 __all__ = [
+    "Corrected",
     "analyse_candidate",
     "analysed_at",
     "canonical_ids",
+    "correct_best",
     "direct_possible",
     "dof_of",
     "state_at",
+    "states_at",
 ]
 
 
@@ -45,19 +55,21 @@ def state_at(
     X: FloatArray,
     key: StateKey,
     fallback: ContactState,
+    at: tuple[ContactState, ContactState] | None = None,
 ) -> ContactState:
     """Return the contact state of ``key``'s elements re-evaluated at the corrected pose ``X``.
 
     The elements come from ``finder`` (the recognition threshold), restricted to ``key``;
     the touching pairs from ``exact`` (a tight threshold): at a corrected pose the contacts
     hold exactly, so only pairs that really touch enter Donald's inclusion test, not pairs
-    that are merely near.
+    that are merely near. ``at``: both finders' states at ``X`` if already searched
+    (:func:`states_at`).
     """
-    found = finder.find(X)
+    found = finder.find(X) if at is None else at[0]
     by_key = {e.key: e for e in found.elements}
     if not key <= set(by_key):
         return fallback
-    held = exact.find(X)
+    held = exact.find(X) if at is None else at[1]
     closure = {e.key: e for e in held.elements}
     # every element that holds at the corrected pose: an observed subset of a contact (three
     # of a face's four vertices seen within the threshold) is the whole contact
@@ -80,6 +92,43 @@ def analysed_at(candidates: Sequence[CandidateState | None], k: int) -> Candidat
     return c
 
 
+Corrected = tuple[IntArray, IntArray, FloatArray, BoolArray]
+"""A candidate's frames, its best frames, their corrected poses and which converged."""
+
+
+def correct_best(
+    scene: Scene,
+    labels: IntArray,
+    k: int,
+    observed: ContactState,
+    cost: FloatArray,
+    tries: int = 3,
+) -> Corrected:
+    """Correct the ``tries`` cheapest frames where candidate ``k`` is observed."""
+    frames = np.flatnonzero(labels == k)
+    best = frames[np.argsort(cost[frames], kind="stable")[:tries]]
+    Xb, _before, _after, ok = correct_poses(
+        scene.grasped, scene.environment, scene.X[best], observed.elements, threshold=scene.unit
+    )
+    return frames, best, Xb, ok
+
+
+def states_at(
+    scene: Scene, corrected: dict[int, Corrected]
+) -> dict[int, tuple[ContactState, ContactState]]:
+    """Both finders' states at each candidate's first converged pose, searched in one batch.
+
+    One ``find_batch`` per finder instead of one single-pose ``find`` per candidate (the
+    single-pose search is mostly per-call overhead: about 1.8 ms against 0.1 ms per pose).
+    """
+    ks = [k for k, (_f, _b, _X, ok) in corrected.items() if ok.any()]
+    if not ks:
+        return {}
+    X = np.stack([corrected[k][2][int(np.argmax(corrected[k][3]))] for k in ks])
+    found, held = scene.finder.find_batch(X), scene.exact.find_batch(X)
+    return {k: (found[i], held[i]) for i, k in enumerate(ks)}
+
+
 def analyse_candidate(
     scene: Scene,
     labels: IntArray,
@@ -89,6 +138,8 @@ def analyse_candidate(
     cost: FloatArray,
     neighbours: Sequence[ContactState] = (),
     tries: int = 3,
+    corrected: Corrected | None = None,
+    at: tuple[ContactState, ContactState] | None = None,
 ) -> CandidateState:
     """Correct the best observed frames of candidate ``k``; analyse it at the first success.
 
@@ -98,16 +149,13 @@ def analyse_candidate(
     frames are tried
     (:func:`apo.recognition.hypotheses.rescue`, with the states observed before and after,
     ``neighbours``); the state is then the one that holds at the rescued pose.
+    ``corrected`` (:func:`correct_best`) and ``at`` (:func:`states_at`): already computed.
     """
-    frames = np.flatnonzero(labels == k)
-    best = frames[np.argsort(cost[frames], kind="stable")[:tries]]
-    Xb, _before, _after, ok = correct_poses(
-        scene.grasped, scene.environment, scene.X[best], observed.elements, threshold=scene.unit
-    )
+    frames, best, Xb, ok = corrected or correct_best(scene, labels, k, observed, cost, tries)
     if ok.any():
         i = int(np.argmax(ok))
         f = int(best[i])
-        state = state_at(scene.finder, scene.exact, Xb[i], key, observed)
+        state = state_at(scene.finder, scene.exact, Xb[i], key, observed, at)
         return CandidateState(key, state, dof_of(state), f, Xb[i].copy(), True, len(frames))
     found = rescue(scene, [int(f) for f in best], observed, neighbours)
     if found is not None:

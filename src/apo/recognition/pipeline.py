@@ -74,6 +74,7 @@ def recognize(
     costs: SegmentationCosts | None = None,
     memoize: bool = False,
     noise: tuple[float, float] | None = None,
+    floor_share: float | None = None,
 ) -> TaskModel:
     """Recognise a demonstration into a :class:`~apo.task.TaskModel`.
 
@@ -107,6 +108,10 @@ def recognize(
     noise : (float, float), optional
         Pose noise per axis: position (metres) and rotation (radians) standard deviations;
         default: estimated from the poses (:func:`apo.recognition.noise.estimate_noise`).
+    floor_share : float, optional
+        Least threshold, as a share of :func:`default_threshold`, when the threshold follows
+        the noise; default ``NOISE_FLOOR_SHARE`` (pose files), ``TRACKED_FLOOR_SHARE`` for poses
+        tracked from depth frames (their smooth bias does not show in the noise estimate).
 
     Returns
     -------
@@ -134,6 +139,7 @@ def recognize(
         costs=costs,
         memoize=memoize,
         noise=noise,
+        floor_share=floor_share,
     ).task
 
 
@@ -151,6 +157,7 @@ def recognize_frames(
     costs: SegmentationCosts | None = None,
     memoize: bool = False,
     noise: tuple[float, float] | None = None,
+    floor_share: float | None = None,
 ) -> Recognition:
     """Recognise a demonstration; return the task model and per-frame diagnostics.
 
@@ -167,6 +174,7 @@ def recognize_frames(
     once = partial(
         _recognise_once, grasped, environment, t, X, costs=costs or SegmentationCosts(),
         memoize=memoize, progress=progress, units=units, models=models, source=source,
+        floor_share=floor_share,
     )  # fmt: skip
     rec = once(threshold, est)
     if threshold is not None or noise is not None:
@@ -196,6 +204,13 @@ def recognize_frames(
 #: (which stays the threshold when no noise is known). A quarter: on clean poses a real gap
 #: of a few millimetres is not a contact (docs/recognition.md, "Threshold").
 NOISE_FLOOR_SHARE = 0.25
+
+#: The floor for poses tracked from depth frames (``apo analyze FRAMES``, ``apo demo
+#: --from-frames``): the whole default. ICP's error on a far camera is a smooth bias of
+#: 1-1.5 mm that moves with the view, not frame-to-frame jitter, so the noise estimate
+#: (second differences, contact residuals) sees 0.04-0.3 mm of it and a threshold at a
+#: quarter of the default misses real contacts (docs/recognition.md, "Threshold").
+TRACKED_FLOOR_SHARE = 1.0
 
 #: Passes of recognition again with the contact residuals' noise (drift), at most.
 CONTACT_PASSES = 2
@@ -232,11 +247,12 @@ def _recognise_once(
     units: str,
     models: tuple[ModelRef, ModelRef] | None,
     source: str,
+    floor_share: float | None = None,
 ) -> Recognition:
     """One pass of the stages at one threshold and noise level."""
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
-    scene = make_scene(grasped, environment, X, threshold, costs, est)
+    scene = make_scene(grasped, environment, X, threshold, costs, est, floor_share)
     observed = observe(scene, memoize=memoize, progress=progress)
     tm["contacts"] = time.perf_counter() - t0
     dists = DistanceCache(grasped, environment, X, scene.unit)
@@ -299,11 +315,13 @@ def make_scene(
     threshold: float | None,
     costs: SegmentationCosts,
     noise: NoiseEstimate | None = None,
+    floor_share: float | None = None,
 ) -> Scene:
     """Make the scene of a recognition: models, poses, the two contact finders, the costs.
 
-    The threshold, when not given, is the larger of :func:`default_threshold` and
-    ``NOISE_THRESHOLD_FACTOR`` standard deviations of a vertex distance under ``noise``.
+    The threshold, when not given, is the larger of ``floor_share`` (default
+    ``NOISE_FLOOR_SHARE``) times :func:`default_threshold` and ``NOISE_THRESHOLD_FACTOR``
+    standard deviations of a vertex distance under ``noise``; without ``noise``, the default.
     Outlier frames (:func:`~apo.recognition.noise.outlier_frames`) are marked. At
     corrected poses contacts hold exactly: the contact finder's own (tight) default
     threshold tells which feature pairs really touch there.
@@ -312,7 +330,8 @@ def make_scene(
     scale = 0.0
     if threshold is None:
         sd = 0.0 if noise is None else noise.distance
-        floor = base if noise is None else NOISE_FLOOR_SHARE * base
+        share = NOISE_FLOOR_SHARE if floor_share is None else floor_share
+        floor = base if noise is None else share * base
         threshold = max(floor, NOISE_THRESHOLD_FACTOR * sd)
         scale = max(base, threshold)
     finder = ContactFinder(grasped, environment, threshold=threshold)
