@@ -129,3 +129,22 @@ def test_unbiased_at_1_m_where_closest_point_icp_is_not() -> None:
     # the camera by about 0.75 mm; the projective pairing stays within noise of the truth.
     p, q = np.linalg.norm(np.mean(proj, axis=0)), np.linalg.norm(np.mean(closest, axis=0))
     assert p < 0.3 and q > 0.5 and p < 0.4 * q, (p, q)
+
+
+def test_bounded_nearest_sample_matches_unbounded_within_reach() -> None:
+    from apo.perception.register import model_cloud
+
+    peg, _ = peg_and_slot()
+    cloud = model_cloud(peg)
+    rng = np.random.default_rng(0)
+    P = cloud.dense_points[::50] + rng.normal(scale=0.004, size=(len(cloud.dense_points[::50]), 3))
+    side, dist, idx = cloud.nearest_sample(P)
+    side_b, _, idx_b = cloud.nearest_sample(P, max_distance=0.003)
+    near = dist < 0.003
+    assert near.any() and (~near).any()
+    np.testing.assert_array_equal(idx_b[near], idx[near])
+    np.testing.assert_allclose(side_b[near], side[near])
+    assert np.all(np.isinf(side_b[~near])) and np.all(idx_b[~near] == -1)
+    plane, point = cloud.residuals(P, max_distance=0.003)
+    np.testing.assert_allclose(point[near], dist[near])
+    assert np.all(np.isinf(plane[~near]))

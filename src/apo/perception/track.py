@@ -702,11 +702,15 @@ class _Tracker:
               "obstacle": self.obstacle}  # fmt: skip
         reach = max(self.opt.track_distance, 3.0 * kw["inlier_distance"])
         result: Registration | None = None
-        if self.opt.projective:
-            result = self.projective(pred, d, c, pts, mask, env_d, reach, kw)
-            if self.good(result):
-                return result
         starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
+        if self.opt.projective:  # from the prediction, then from the last pose
+            for start in starts:
+                r = self.projective(start, d, c, pts, mask, env_d, reach, kw)
+                if _better(r, result):
+                    result = r
+                if result is not None and self.good(result):
+                    return result
+        # Open3D's closest-point ICP only when the projective ICP is not good from either start.
         for start in starts:
             r = register(pts, self.G, start, max_distance=reach, coarse=False, **kw)
             if _displacement(self.G, start, r.X_CM) > self.opt.settle_distance:
