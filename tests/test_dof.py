@@ -681,12 +681,6 @@ def test_the_lp_oracle_agrees_with_the_hand_derivations(name: str) -> None:
     assert _brute_indices(contacts) == (fig25[:6], all_, rot12)
 
 
-def _support_lp_model(z):
-    from apo import dof
-
-    return dof._highs_lp(*dof._support_lp_arrays(z))
-
-
 @pytest.mark.parametrize(
     ("z", "support"),
     [
@@ -701,7 +695,7 @@ def test_support_rescue_keeps_what_a_verified_point_certifies(z, support):
     from apo import dof
 
     z = np.asarray(z)
-    got = dof._support_rescue(_support_lp_model(z), z, 1e-9)
+    got = dof._support_rescue(dof._support_lp_model(z), z, 1e-9)
     np.testing.assert_array_equal(got, support)
     np.testing.assert_array_equal(dof._support_lp(z, 1e-9), support)
 

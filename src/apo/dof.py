@@ -408,21 +408,12 @@ def _highs_lp(
     return lp
 
 
-def _solve_lp(
-    cost: FloatArray,
-    col_lower: FloatArray,
-    col_upper: FloatArray,
-    a: FloatArray,
-    row_lower: FloatArray,
-    row_upper: FloatArray,
-    feasibility: float,
-) -> FloatArray | None:
-    """Minimise ``cost . x`` s.t. ``row_lower <= a x <= row_upper``, bounds; None if not optimal."""
+def _solve_lp(lp: Any, feasibility: float) -> FloatArray | None:
+    """Solve the model ``lp`` (:func:`_highs_lp`); its solution, or None if not optimal."""
     import highspy
 
     h = _highs()
     h.setOptionValue("primal_feasibility_tolerance", feasibility)
-    lp = _highs_lp(cost, col_lower, col_upper, a, row_lower, row_upper)
     h.passModel(lp)
     h.run()
     if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
@@ -501,13 +492,11 @@ def _support_1d(col: FloatArray, eta: float) -> BoolArray:
     return out
 
 
-def _support_lp_arrays(
-    z: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Return cost, column bounds, matrix and row bounds of :func:`_support_lp`'s LP."""
+def _support_lp_model(z: FloatArray) -> Any:
+    """Return the HiGHS model of :func:`_support_lp`'s LP."""
     n_col, k = z.shape
     inf = float("inf")  # = highspy.kHighsInf
-    return (
+    return _highs_lp(
         np.concatenate([np.zeros(k), -np.ones(n_col)]),
         np.concatenate([np.full(k, -inf), np.zeros(n_col)]),
         np.concatenate([np.full(k, inf), np.ones(n_col)]),
@@ -523,10 +512,10 @@ def _support_lp(z: FloatArray, eta: float) -> BoolArray:
     At the optimum ``t_i = 1`` exactly on the support (sums of feasible points are feasible
     and the cone is scale-invariant); ``i`` is taken in the support when ``t_i > 1/2``.
     """
-    args = _support_lp_arrays(z)
-    x_opt = _solve_lp(*args, eta)
+    lp = _support_lp_model(z)
+    x_opt = _solve_lp(lp, eta)
     if x_opt is None:  # always feasible (y = 0, t = 0) and bounded, but HiGHS may stop short
-        return _support_rescue(_highs_lp(*args), z, eta)
+        return _support_rescue(lp, z, eta)
     return np.asarray(x_opt[z.shape[1] :] > 0.5, dtype=bool)
 
 
@@ -836,15 +825,15 @@ def _detaching_direction(
         u = t_det.T @ y
         return np.asarray(u / np.linalg.norm(u), dtype=np.float64)
     inf = float("inf")  # = highspy.kHighsInf
-    x = _solve_lp(
+    lp = _highs_lp(
         a.sum(axis=0),
         np.full(d, -inf),
         np.full(d, inf),
         a,
         np.ones(a.shape[0]),
         np.full(a.shape[0], inf),
-        tolerances.cone,
     )
+    x = _solve_lp(lp, tolerances.cone)
     if x is None:  # pragma: no cover - feasible by construction of S_t
         return np.zeros(3)
     u = t_det.T @ x
