@@ -164,6 +164,25 @@ def pose_from_xyz_quat(v: npt.ArrayLike) -> FloatArray:
     return pose_from_position_quaternion(a[:3], a[3:])
 
 
+def orthonormalised(X: npt.ArrayLike) -> FloatArray:
+    """Return the rigid pose nearest to ``X`` (its rotation block projected onto SO(3)).
+
+    Compositions and float arithmetic (Open3D's, an ICP's steps) let a rotation block drift
+    from orthonormal; ``invert_pose`` assumes a rigid pose, so an error there would grow from
+    frame to frame.
+    """
+    M = np.asarray(X, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(M[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, 2] = -U[:, 2]
+        R = U @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = M[:3, 3]
+    return out
+
+
 def invert_pose(X: npt.ArrayLike) -> FloatArray:
     """Return the inverse of a rigid 4x4 pose."""
     M = np.asarray(X, dtype=float)

@@ -56,7 +56,7 @@ import numpy.typing as npt
 
 from apo.perception.camera import Camera
 from apo.perception.render import rasterize
-from apo.spatial import transform_points
+from apo.spatial import orthonormalised, transform_points
 from apo.typing import FloatArray
 
 __all__ = ["FacePlanes", "ProjectiveResult", "face_planes", "projective_icp", "tukey_weights"]
@@ -313,7 +313,7 @@ def projective_icp(
             converged = True
             break
         scale_k = max(scale_k / 2.0, final_scale)
-    return ProjectiveResult(_orthonormal(X), pairs, n_obs, rms, steps, converged)
+    return ProjectiveResult(orthonormalised(X), pairs, n_obs, rms, steps, converged)
 
 
 def _rows(
@@ -425,15 +425,3 @@ def _normal_equations(
     b = J.T @ (w * r)
     rms = float(np.sqrt(np.sum(w * r * r) / np.sum(w)))
     return A, b, int(np.count_nonzero(used)), rms
-
-
-def _orthonormal(X: FloatArray) -> FloatArray:
-    U, _, Vt = np.linalg.svd(X[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, 2] = -U[:, 2]
-        R = U @ Vt
-    out = np.eye(4)
-    out[:3, :3] = R
-    out[:3, 3] = X[:3, 3]
-    return out

@@ -41,7 +41,7 @@ from apo.errors import ApoError
 from apo.perception.frames import Camera
 from apo.perception.projective import FacePlanes, face_planes, projective_icp
 from apo.perception.render import Triangles, rasterize
-from apo.spatial import invert_pose, transform_points
+from apo.spatial import invert_pose, orthonormalised, transform_points
 from apo.typing import FloatArray
 
 __all__ = [
@@ -273,24 +273,6 @@ class Registration:
         if self.surface is not None:
             return float(self.surface.score * (1.0 - self.penetration))
         return float(self.fitness * (1.0 - self.violation) * (1.0 - self.penetration))
-
-
-def orthonormalised(X: npt.ArrayLike) -> FloatArray:
-    """Return the rigid pose nearest to ``X`` (its rotation block projected onto SO(3)).
-
-    Compositions and Open3D's float arithmetic let a rotation block drift from orthonormal;
-    ``invert_pose`` assumes a rigid pose, so an error there would grow from frame to frame.
-    """
-    M = np.asarray(X, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(M[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, 2] = -U[:, 2]
-        R = U @ Vt
-    out = np.eye(4)
-    out[:3, :3] = R
-    out[:3, 3] = M[:3, 3]
-    return out
 
 
 FREE_SPACE_FULL_PIXELS = 160 * 120
