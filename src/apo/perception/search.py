@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from apo.perception.projective import tukey_weights
 from apo.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -45,8 +46,7 @@ def _tree(model: ModelCloud, dense: bool) -> Any:
 def _weights(r: FloatArray, loss: str, scale: float) -> FloatArray:
     """IRLS weights of residuals ``r`` for the robust kernel (Open3D's definitions)."""
     if loss == "tukey":
-        u = np.clip(1.0 - (r / scale) ** 2, 0.0, None)
-        return u * u
+        return tukey_weights(r, scale)
     if loss == "huber":
         a = np.abs(r)
         return np.where(a <= scale, 1.0, scale / np.maximum(a, 1e-300))
