@@ -51,9 +51,11 @@ from apo.errors import OutputError
 __all__ = [
     "MANIFEST",
     "MANIFEST_FORMAT",
+    "JsonItems",
     "OutputSet",
     "atomic_file",
     "check_file_destination",
+    "json_chunks",
     "json_text",
     "output_files",
     "read_manifest",
@@ -539,34 +541,77 @@ def json_text(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> str:
       }
     }
     """
+    return "".join(json_chunks(data, depth=depth))
+
+
+class JsonItems:
+    """A JSON array whose items are made while it is written (:func:`json_chunks`).
+
+    ``items()`` returns a fresh iterable of the items each time; ``n`` is their number and
+    ``nested`` says whether they are objects or arrays (laid out one per line) or plain
+    values. A long array (the states of a long task) is then never held whole: only the
+    items of the block being written.
+    """
+
+    def __init__(self, n: int, items: Callable[[], Iterable[Any]], *, nested: bool = True):
+        self.n = n
+        self.items = items
+        self.nested = nested
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(self.items())
+
+
+#: Pieces of text gathered into one chunk by :func:`json_chunks`.
+JSON_CHUNK_PIECES = 2048
+
+
+def json_chunks(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> Iterator[str]:
+    """Yield the text of :func:`json_text` in chunks (joined, the same text).
+
+    ``data`` may hold :class:`JsonItems` arrays, written item by item: the text and the
+    items of a long array are never in memory whole, only one chunk of
+    ``JSON_CHUNK_PIECES`` pieces.
+    """
     flat = _one_line_encoder()
     out: list[str] = []
-    nested = (dict, list, tuple)
+    nested = (dict, list, tuple, JsonItems)
 
-    def put(v: Any, level: int) -> None:
-        if (
+    def plain(v: Any, level: int) -> bool:
+        if isinstance(v, JsonItems):
+            return level >= depth or not (v.n and v.nested)
+        return (
             level >= depth
             or not isinstance(v, nested)
             or not any(isinstance(x, nested) for x in (v.values() if isinstance(v, dict) else v))
-        ):
-            out.append(flat(v))
+        )
+
+    def put(v: Any, level: int) -> Iterator[str]:
+        if plain(v, level):
+            out.append(flat(list(v) if isinstance(v, JsonItems) else v))
             return
         pad = "\n" + "  " * (level + 1)
         if isinstance(v, dict):
             out.append("{")
             for i, (k, x) in enumerate(v.items()):
                 out.append(("," if i else "") + pad + flat(str(k)) + ": ")
-                put(x, level + 1)
+                yield from put(x, level + 1)
         else:
             out.append("[")
             for i, x in enumerate(v):
                 out.append(("," if i else "") + pad)
-                put(x, level + 1)
+                yield from put(x, level + 1)
+                if len(out) >= JSON_CHUNK_PIECES:
+                    yield "".join(out)
+                    out.clear()
         out.append("\n" + "  " * level + ("}" if isinstance(v, dict) else "]"))
 
-    put(data, 0)
+    yield from put(data, 0)
     out.append("\n")
-    return "".join(out)
+    yield "".join(out)
 
 
 def _one_line_encoder() -> Callable[[Any], str]:

@@ -1,0 +1,121 @@
+"""Memory bounded (issue 9): long outputs written block by block, the same bytes as whole."""
+
+from __future__ import annotations
+
+import io
+import json
+from contextlib import redirect_stdout
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from apo import task as task_mod
+from apo.outputs import JsonItems, OutputSet, json_chunks, json_text
+from apo.recognition import recognize_frames
+from apo.synthetic import add_noise, random_variant
+
+
+def _random_value(rng: np.random.Generator, depth: int) -> Any:
+    k = int(rng.integers(0, 7 if depth < 5 else 4))
+    if k == 0:
+        return {f"k{i}\u00e9<": _random_value(rng, depth + 1) for i in range(int(rng.integers(0, 4)))}
+    if k == 1:
+        return [_random_value(rng, depth + 1) for _ in range(int(rng.integers(0, 4)))]
+    return [None, True, 1.5e-17, -3, 's\n"x'][k - 2] if k < 7 else 0
+
+
+def _lazy(items: list[Any]) -> JsonItems:
+    """``items`` as a :class:`JsonItems` (the items handed out afresh at each iteration)."""
+    nested = any(isinstance(x, (dict, list, tuple)) for x in items)
+    return JsonItems(len(items), lambda: iter(items), nested=nested)
+
+
+@pytest.mark.parametrize("pieces", [1, 3, 2048])
+def test_json_chunks_join_to_json_text(monkeypatch, pieces: int) -> None:
+    import apo.outputs
+
+    monkeypatch.setattr(apo.outputs, "JSON_CHUNK_PIECES", pieces)
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        doc = {"a": _random_value(rng, 0), "b": [_random_value(rng, 0) for _ in range(30)]}
+        for depth in (0, 1, 2, 3, 9):
+            want = json_text(doc, depth=depth)
+            got = list(json_chunks(doc, depth=depth))
+            assert "".join(got) == want
+            if depth >= 2 and pieces == 1:
+                assert len(got) > 1  # written in more than one chunk
+            # top-level lists made while written: the same text where they are not flattened
+            top = {"a": doc["a"], "b": _lazy(doc["b"])}
+            if depth >= 1:
+                assert "".join(json_chunks(top, depth=depth)) == want
+
+
+def _recognised(seed: int) -> Any:
+    demo = add_noise(random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, seed=seed)
+    return recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG), demo
+
+
+@pytest.mark.parametrize("seed", [3, 27])
+def test_task_json_in_blocks_is_the_whole_document(monkeypatch, seed: int) -> None:
+    rec, _ = _recognised(seed)
+    want = json_text(task_mod.task_to_dict(rec.task), depth=2)
+    for block in (1, 2, 5, 1024):
+        monkeypatch.setattr(task_mod, "JSON_BLOCK_STATES", block)
+        assert "".join(task_mod.task_json_chunks(rec.task)) == want
+    head = task_mod.task_head(rec.task)
+    assert head == {
+        k: v
+        for k, v in json.loads(want).items()
+        if k not in ("states", "transitions", "rejected", "graph")
+    }
+
+
+def _write(tmp: Path, rec: Any, demo: Any, whole: bool) -> tuple[dict[str, bytes], str]:
+    from apo.cli.analyze import print_result
+    from apo.report.writer import report_maker, task_document, write_recognition
+
+    out = io.StringIO()
+    with OutputSet(tmp, label="--out") as outs, redirect_stdout(out):
+        task = task_document(rec) if whole else None
+        if whole and task is not None:
+            print_result(rec, as_json=True, task_text=task[1])
+        write_recognition(
+            outs,
+            rec,
+            plot=False,
+            report=report_maker(rec, demo.grasped, demo.environment, demo.X_EG, []),
+            task=task,
+            on_task=None if whole else lambda tj: print_result(rec, tj, as_json=True),
+        )
+    files = {n: (tmp / n).read_bytes() for n in ("task.json", "frames.csv", "report.html")}
+    return files, out.getvalue()
+
+
+def test_streamed_outputs_are_the_whole_texts(tmp_path, monkeypatch) -> None:
+    """task.json, --json and report.html written chunk by chunk: the same bytes."""
+    from apo.report.writer import TaskJson
+
+    monkeypatch.setattr(task_mod, "JSON_BLOCK_STATES", 2)
+    monkeypatch.setattr(TaskJson, "CHUNK", 100)  # the task's text spliced in many chunks
+    rec, demo = _recognised(5)
+    a, out_a = _write(tmp_path / "whole", rec, demo, whole=True)
+    b, out_b = _write(tmp_path / "streamed", rec, demo, whole=False)
+    assert a == b
+    assert out_a == out_b == a["task.json"].decode("utf-8")
+
+
+@pytest.mark.parametrize("text", ['{"a": 1}\n', '  \n{"a": "<&>"}  \n\n', "{}", "\n"])
+def test_task_json_file_is_spliced_as_its_stripped_text(tmp_path, text: str) -> None:
+    from apo.report.html import _json_for_script, _script_pieces
+    from apo.report.writer import TaskJson
+
+    p = tmp_path / "task.json"
+    p.write_text(text, encoding="utf-8")
+    for chunk in (1, 2, 1 << 20):
+        tj = TaskJson(p, {})
+        tj.CHUNK = chunk
+        assert b"".join(tj.stripped_chunks()) == text.strip().encode()
+        data = {"schema": "x", "task": {}, "n": [1, "</script>"]}
+        assert b"".join(_script_pieces(data, tj)) == _json_for_script(data, text)
