@@ -20,7 +20,8 @@ from apo.synthetic import add_noise, random_variant
 def _random_value(rng: np.random.Generator, depth: int) -> Any:
     k = int(rng.integers(0, 7 if depth < 5 else 4))
     if k == 0:
-        return {f"k{i}\u00e9<": _random_value(rng, depth + 1) for i in range(int(rng.integers(0, 4)))}
+        n = int(rng.integers(0, 4))
+        return {f"k{i}\u00e9<": _random_value(rng, depth + 1) for i in range(n)}
     if k == 1:
         return [_random_value(rng, depth + 1) for _ in range(int(rng.integers(0, 4)))]
     return [None, True, 1.5e-17, -3, 's\n"x'][k - 2] if k < 7 else 0
