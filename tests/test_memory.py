@@ -35,9 +35,9 @@ def _lazy(items: list[Any]) -> JsonItems:
 
 @pytest.mark.parametrize("pieces", [1, 3, 2048])
 def test_json_chunks_join_to_json_text(monkeypatch, pieces: int) -> None:
-    import apo.outputs
+    import apo.jsonform
 
-    monkeypatch.setattr(apo.outputs, "JSON_CHUNK_PIECES", pieces)
+    monkeypatch.setattr(apo.jsonform, "JSON_CHUNK_PIECES", pieces)
     rng = np.random.default_rng(11)
     for _ in range(200):
         doc = {"a": _random_value(rng, 0), "b": [_random_value(rng, 0) for _ in range(30)]}
@@ -120,3 +120,47 @@ def test_task_json_file_is_spliced_as_its_stripped_text(tmp_path, text: str) -> 
         assert b"".join(tj.stripped_chunks()) == text.strip().encode()
         data = {"schema": "x", "task": {}, "n": [1, "</script>"]}
         assert b"".join(_script_pieces(data, tj)) == _json_for_script(data, text)
+
+
+@pytest.mark.parametrize("seed", [4, 19])
+def test_block_wise_noise_outliers_and_correction_equal_whole(monkeypatch, seed: int) -> None:
+    """Noise, outlier frames and the correction of every frame: the same in any block size."""
+    import apo.recognition.correction as corr
+    import apo.recognition.noise as noise_mod
+
+    demo = add_noise(
+        random_variant(seed), sigma_mm=1.5, sigma_deg=1.5, outlier_rate=0.05, seed=seed
+    )
+    X = np.concatenate([demo.X_EG, demo.X_EG[::-1], demo.X_EG])  # repeats too
+    n = len(X)
+    big = n + 10
+    monkeypatch.setattr(noise_mod, "NOISE_BLOCK", big)
+    est = noise_mod.estimate_noise(demo.grasped, X)
+    want = noise_mod.outlier_frames(demo.grasped, X, est, floor=1e-4)
+    rec, _ = _recognised(seed)
+    monkeypatch.setattr(corr, "DEDUPE_FRAMES", big)
+    states = [c.state for c in rec.candidates if c is not None]
+    labels = np.arange(n) % len(states)
+    want_c = corr.correct_by_label(demo.grasped, demo.environment, X, states, labels, 1e-3)
+    for block in (1, 2, 5, 64):
+        monkeypatch.setattr(noise_mod, "NOISE_BLOCK", block)
+        assert noise_mod.estimate_noise(demo.grasped, X) == est
+        got = noise_mod.outlier_frames(demo.grasped, X, est, floor=1e-4)
+        assert np.array_equal(got, want)
+        monkeypatch.setattr(corr, "DEDUPE_FRAMES", block)
+        got_c = corr.correct_by_label(demo.grasped, demo.environment, X, states, labels, 1e-3)
+        for a, b in zip(got_c, want_c, strict=True):
+            assert np.array_equal(a, b)
+
+
+def test_pose_list_read_in_blocks_is_the_same(tmp_path, monkeypatch) -> None:
+    import apo.io.poses as poses
+
+    demo = add_noise(random_variant(8), sigma_mm=1.0, sigma_deg=1.0, seed=8)
+    models = (tmp_path / "g.stl", tmp_path / "e.stl")
+    path = poses.write_pose_list(tmp_path / "d.pose.list", demo.X_EG, units="mm", models=models)
+    want = poses.read_pose_list(path)
+    for block in (1, 3, 7):
+        monkeypatch.setattr(poses, "POSE_BLOCK", block)
+        got = poses.read_pose_list(path)
+        assert np.array_equal(got.X_EG, want.X_EG) and np.array_equal(got.X_C, want.X_C)

@@ -21,7 +21,7 @@ import numpy as np
 from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.jsonform import JsonReader, rounded, rounded_list, rounded_rows
+from apo.jsonform import JsonItems, JsonReader, json_chunks, rounded, rounded_list, rounded_rows
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -298,7 +298,7 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
 
 
 #: States (and transitions, rejected runs) converted at once by :func:`task_json_chunks`.
-JSON_BLOCK_STATES = 1024
+JSON_BLOCK_STATES = 256
 
 
 def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
@@ -308,8 +308,6 @@ def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
     time and written as they are made: the document of a long task (thousands of states)
     is never held whole, as a dictionary or as text.
     """
-    from apo.outputs import json_chunks
-
     return json_chunks(_task_dict(task, lazy=True), depth=depth)
 
 
@@ -362,7 +360,6 @@ def _in_blocks(items: Sequence[Any], convert: Any, lazy: bool) -> Any:
     """``convert(items)`` (a list), or with ``lazy`` a :class:`JsonItems` converting blocks."""
     if not lazy:
         return convert(items)
-    from apo.outputs import JsonItems
 
     def each() -> Iterator[Any]:
         for a in range(0, len(items), JSON_BLOCK_STATES):

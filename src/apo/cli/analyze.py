@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -293,6 +294,8 @@ def _run(
                 demo, units=args.units, grasped=args.grasped, environment=args.environment
             )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
+        if getattr(dem, "X_C", None) is not None:  # the camera poses: not needed any more
+            dem = replace(dem, X_C=None, tags=None)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
 

@@ -182,7 +182,7 @@ def frames_csv(rec: Recognition) -> str:
 
 
 #: Frames per chunk of ``frames.csv`` formatted at once (:func:`frames_csv_chunks`).
-CSV_BLOCK_FRAMES = 4096
+CSV_BLOCK_FRAMES = 1024
 
 
 def frames_csv_chunks(rec: Recognition, block: int = CSV_BLOCK_FRAMES) -> Iterator[str]:
