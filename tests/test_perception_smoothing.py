@@ -97,6 +97,23 @@ def test_clean_piecewise_motion_is_returned_unchanged_and_gaps_stay() -> None:
     S = smooth_poses(t, Y, valid)
     assert np.isnan(S[~valid]).all() and np.isfinite(S[valid]).all()
     np.testing.assert_array_equal(smooth_poses(t, Y, valid, half_window=0)[valid], Y[valid])
+    # No window spans a gap or a re-initialisation: a jump of 20 mm across either stays
+    # sharp (the frames beside it stay within the noise).
+    Z = Y.copy()
+    Z[42:, :3, 3] += 0.02
+    Z[60:, :3, 3] += 0.02
+    restart = np.zeros(len(Z), dtype=bool)
+    restart[60] = True
+    S = smooth_poses(t, Z, valid, restart=restart)
+    X2 = X.copy()
+    X2[42:, :3, 3] += 0.02
+    X2[60:, :3, 3] += 0.02
+    near = [38, 39, 42, 43, 58, 59, 60, 61]
+    assert np.max(_errors(S[near], X2[near])[0]) < 0.3e-3 * 4 * np.sqrt(3)
+    # Too few frames to tell the noise from the motion: returned as registered.
+    short = _noisy(rng, X[:15], 0.3, 0.7)
+    assert np.isnan(pose_noise(t[:15], short)).all()
+    np.testing.assert_array_equal(smooth_poses(t[:15], short), short)
 
 
 @pytest.mark.parametrize("name", ["peg_in_hole_2d", "square_peg_in_hole"])
@@ -139,7 +156,7 @@ def test_tracker_smooths_only_when_asked(tmp_path: Path) -> None:
                        smooth=False), **init)  # fmt: skip
     on = track_frames(tmp_path, peg, slot, units="m", **init)
     centre = (peg[0].min(0) + peg[0].max(0)) / 2
-    expect = smooth_poses(off.times, off.X_CG, ~off.lost, centre=centre)
+    expect = smooth_poses(off.times, off.X_CG, ~off.lost, centre=centre, restart=off.reinitialised)
     np.testing.assert_allclose(on.X_CG, expect, atol=1e-12)
     moved = np.linalg.norm(on.X_CG[:, :3, 3] - off.X_CG[:, :3, 3], axis=1)
     assert np.count_nonzero(moved > 1e-6) >= 10, moved  # most frames are smoothed

@@ -49,50 +49,71 @@ a few noise sigmas from the noise (a line through 3 frames across a 3 deg kink a
 of noise passed the test and moved the frame 3 deg; measured), so a frame that no window of
 5 fits is left as registered."""
 
+MIN_DEVIATIONS = 20
+"""The noise is estimated from at least this many frames with both neighbours tracked (a
+shorter sequence is returned as registered: 8 frames of a whole insertion, each far from
+the line through its neighbours, gave a noise as large as the motion, and the smoothing
+moved the part by 1.6 mm; measured)."""
+
 CENTRAL_SLACK = 0.5
 """A window more central than the best fit is chosen when it is worse by less than this (in
 mean squared residual per noise variance)."""
 
 
+def _runs(ok: BoolArray, restart: BoolArray) -> npt.NDArray[np.int64]:
+    """Run label of each valid frame: runs of consecutive tracked frames, cut at restarts."""
+    idx = np.nonzero(ok)[0]
+    new = np.ones(len(idx), dtype=bool)
+    new[1:] = (np.diff(idx) != 1) | restart[idx[1:]]
+    return np.cumsum(new)
+
+
 def pose_noise(
     times: npt.ArrayLike, X: npt.ArrayLike, valid: npt.ArrayLike | None = None,
-    centre: npt.ArrayLike | None = None,
+    centre: npt.ArrayLike | None = None, restart: npt.ArrayLike | None = None,
 ) -> FloatArray:  # fmt: skip
     """Noise standard deviation of each pose coordinate (3 rotation, rad; 3 position, m).
 
-    From the frames whose two neighbours are tracked: the deviation of a frame from the
+    From the frames whose two neighbours are tracked (in the same run: no lost frame and no
+    re-initialisation, ``restart``, between them): the deviation of a frame from the
     straight line (in time) through its neighbours has variance ``(1 + a^2 + b^2) sigma^2``
     (``a``, ``b`` the interpolation weights) under independent noise; a robust scale of
     these deviations (1.4826 times their median absolute value) is taken, so jumps and
-    kinks (a few frames) do not count. Floors: 1e-5 rad and 1e-6 m.
+    kinks (a few frames) do not count. Floors: 1e-5 rad and 1e-6 m. NaN when fewer than
+    ``MIN_DEVIATIONS`` frames have both neighbours: too few to tell noise from motion.
     """
     t = np.asarray(times, dtype=np.float64)
     P = np.asarray(X, dtype=np.float64)
     ok = np.ones(len(P), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    rs = np.zeros(len(P), dtype=bool) if restart is None else np.asarray(restart, dtype=bool)
     c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     idx = np.nonzero(ok)[0]
-    floor = np.array([1e-5] * 3 + [1e-6] * 3)
-    if len(idx) < 3:
-        return floor
-    y = _neighbours(t[idx], P[idx], c, 1)[1:-1]  # frames with a neighbour on both sides
+    y = _neighbours(t[idx], P[idx], c, 1, _runs(ok, rs))
     prev, nxt = y[:, 0, :6], y[:, 2, :6]
-    wa = (y[:, 2, 6] / np.maximum(y[:, 2, 6] - y[:, 0, 6], 1e-12))[:, None]
-    dev = (wa * prev + (1 - wa) * nxt) / np.sqrt(1 + wa**2 + (1 - wa) ** 2)
+    both = np.isfinite(prev[:, 0]) & np.isfinite(nxt[:, 0])
+    if np.count_nonzero(both) < MIN_DEVIATIONS:
+        return np.full(6, np.nan)
+    wa = (y[both, 2, 6] / np.maximum(y[both, 2, 6] - y[both, 0, 6], 1e-12))[:, None]
+    dev = (wa * prev[both] + (1 - wa) * nxt[both]) / np.sqrt(1 + wa**2 + (1 - wa) ** 2)
+    floor = np.array([1e-5] * 3 + [1e-6] * 3)
     return np.asarray(np.maximum(1.4826 * np.median(np.abs(dev), axis=0), floor))
 
 
-def _neighbours(t: FloatArray, X: FloatArray, centre: FloatArray, reach: int) -> FloatArray:
+def _neighbours(
+    t: FloatArray, X: FloatArray, centre: FloatArray, reach: int, run: npt.NDArray[np.int64]
+) -> FloatArray:
     """Coordinates of frames ``i + d`` (``|d| <= reach``) relative to frame ``i``: (N, 2r+1, 7).
 
-    The last column is the time offset; NaN where ``i + d`` is outside the sequence.
+    The last column is the time offset; NaN where ``i + d`` is outside the sequence or in
+    another run (``run``: a label per frame).
     """
     from scipy.spatial.transform import Rotation
 
     n = len(X)
     d = np.arange(-reach, reach + 1)
     j = np.arange(n)[:, None] + d[None, :]
-    inside = (j >= 0) & (j < n)
     jj = np.clip(j, 0, n - 1)
+    inside = (j >= 0) & (j < n) & (run[jj] == run[:, None])
     R = np.einsum("nkij,nlj->nkil", X[jj, :3, :3], X[:, :3, :3])  # R_j R_i^T
     w = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(n, len(d), 3)
     p = np.einsum("nij,j->ni", X[:, :3, :3], centre) + X[:, :3, 3]
@@ -146,6 +167,7 @@ def smooth_poses(
     centre: npt.ArrayLike | None = None,
     half_window: int = HALF_WINDOW,
     noise: npt.ArrayLike | None = None,
+    restart: npt.ArrayLike | None = None,
 ) -> FloatArray:
     """Smooth a pose sequence, keeping its jumps and kinks (see the module notes).
 
@@ -163,7 +185,11 @@ def smooth_poses(
     half_window : int, optional
         The longest window has ``2 half_window + 1`` tracked frames; 0 returns the poses.
     noise : array_like, shape (6,), optional
-        Noise of the coordinates (:func:`pose_noise`); default estimated from the sequence.
+        Noise of the coordinates (:func:`pose_noise`); default estimated from the sequence
+        (too short a sequence to estimate it is returned unchanged).
+    restart : array_like of bool, shape (N,), optional
+        Frames where tracking started afresh (re-initialised): no window spans one, nor a
+        lost frame.
 
     Returns
     -------
@@ -176,13 +202,14 @@ def smooth_poses(
     )
     ok &= np.isfinite(P).all(axis=(1, 2))
     c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
-    scale = pose_noise(t, P, ok, c) if noise is None else np.asarray(noise, dtype=np.float64)
+    rs = np.zeros(len(P), dtype=bool) if restart is None else np.asarray(restart, dtype=bool)
+    scale = pose_noise(t, P, ok, c, rs) if noise is None else np.asarray(noise, dtype=np.float64)
     out = P.copy()
     idx = np.nonzero(ok)[0]
-    if half_window < 1 or len(idx) < 3:
+    if half_window < 1 or len(idx) < 3 or not np.isfinite(scale).all():
         return out
     Xv = P[idx]
-    y = _neighbours(t[idx], Xv, c, 2 * half_window)
+    y = _neighbours(t[idx], Xv, c, 2 * half_window, _runs(ok, rs))
     mid = 2 * half_window  # the column of the frame itself
     value = np.zeros((len(idx), 6))
     done = np.zeros(len(idx), dtype=bool)

@@ -912,7 +912,9 @@ def track_frames(
     times = np.asarray(src.times, dtype=np.float64)
     X_CG = tracker.X_CG
     if opt.smooth:  # offline: each pose from the frames on both sides
-        X_CG = smooth_poses(times, X_CG, ~tracker.lost, centre=tracker.centre)
+        X_CG = smooth_poses(
+            times, X_CG, ~tracker.lost, centre=tracker.centre, restart=tracker.reinit
+        )
     X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), X_CG)
     return TrackResult(
         times, X_CG, scene.X_CE, X_EG,
