@@ -14,6 +14,7 @@ from apo.contact.distance_tests import (
     _triangle_terms,
 )
 from apo.contact.model_data import _model_data
+from apo.contact.search import _group_sets
 from apo.typing import FloatArray
 
 
@@ -94,5 +95,32 @@ def test_nearest_face_runs_are_the_sorted_minima(seed: int, sigma: float) -> Non
     # pairs not by (point, triangle) are sorted first
     perm = np.random.default_rng(seed).permutation(len(ii))
     got = _nearest_face(e, Q, rows, ii[perm], tt_[perm], finder.threshold)
+    for x, y in zip(got, want, strict=True):
+        assert np.array_equal(x, y)
+
+
+def group_sets_sorted(frame: np.ndarray, code: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
+    """Labels by sorting the rows (``np.unique(axis=0)``; the form before the dict)."""
+    cnt = np.bincount(frame, minlength=n)
+    M = np.full((n, int(cnt.max(initial=0)) + 1), -1, dtype=np.int64)
+    M[:, 0] = cnt
+    M[frame, np.arange(len(frame)) - (np.cumsum(cnt) - cnt)[frame] + 1] = code
+    _, first, inverse = np.unique(M, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[inverse.ravel()], first[order]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_group_sets_labels_by_first_appearance_like_sorting(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    sets = [np.unique(rng.integers(0, 9, size=rng.integers(0, 4))) for _ in range(12)]
+    pick = rng.integers(0, len(sets), size=n)
+    frame = np.concatenate([np.full(len(sets[p]), f) for f, p in enumerate(pick)]).astype(np.int64)
+    code = np.concatenate([sets[p] for p in pick]).astype(np.int64)
+    got = _group_sets(frame, code, n)
+    want = group_sets_sorted(frame, code, n)
     for x, y in zip(got, want, strict=True):
         assert np.array_equal(x, y)
