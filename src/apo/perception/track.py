@@ -699,7 +699,7 @@ class _Tracker:
         if len(pts) < self.opt.min_points:
             return None
         kw = {**self.scene.settings(pts), "depth": d, "camera": c, "occluder": env_d,
-              "obstacle": self.obstacle}  # fmt: skip
+              "obstacle": self.obstacle, "engine": "numpy"}  # fmt: skip
         reach = max(self.opt.track_distance, 3.0 * kw["inlier_distance"])
         result: Registration | None = None
         starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
@@ -710,7 +710,8 @@ class _Tracker:
                     result = r
                 if result is not None and self.good(result):
                     return result
-        # Open3D's closest-point ICP only when the projective ICP is not good from either start.
+        # The closest-point ICP (numpy: no Open3D import) only when the projective ICP is not
+        # good from either start.
         for start in starts:
             r = register(pts, self.G, start, max_distance=reach, coarse=False, **kw)
             if _displacement(self.G, start, r.X_CM) > self.opt.settle_distance:
@@ -737,7 +738,7 @@ class _Tracker:
         within ``reach`` of the first (a square peg deep in its hole, a few faces in view,
         once turned 90 deg with the same confidence).
         """
-        args = {k: v for k, v in kw.items() if k not in ("loss", "depth", "camera")}
+        args = {k: v for k, v in kw.items() if k not in ("loss", "depth", "camera", "engine")}
         sigma = self.scene.noise.sigma(d)
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
                                 start_scale=reach, **args)  # fmt: skip
