@@ -613,6 +613,7 @@ def register(
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
     occluder: npt.ArrayLike | None = None,
+    engine: str = "open3d",
 ) -> Registration:
     """Robust point-to-plane ICP of a model to observed points, from an initial pose.
 
@@ -654,11 +655,24 @@ def register(
     occluder : ndarray, shape (H, W), optional
         Depth of the other object rendered at its pose (same window as ``depth``): model
         pixels it hides are not predicted visible.
+    engine : {"open3d", "numpy"}, optional
+        Open3D's ICP (stops when fitness and RMS change by less than :data:`CONVERGED`), or
+        :func:`apo.perception.search.batch_icp` (the same point-to-plane ICP, closest sample
+        and kernel in numpy; stops when a step is below 1e-9 rad + m): no Open3D import.
 
     Returns
     -------
     Registration
     """
+    if engine == "numpy":
+        return _register_numpy(
+            points_C, model, X_CM_init, max_distance=max_distance, inlier_distance=inlier_distance,
+            loss=loss, iterations=iterations, coarse=coarse, dense=dense,
+            scoring={"depth": depth, "camera": camera, "obstacle": obstacle,
+                     "free_space_tolerance": free_space_tolerance, "occluder": occluder},
+        )  # fmt: skip
+    if engine != "open3d":
+        raise ValueError(f"unknown engine {engine!r}; expected 'open3d' or 'numpy'")
     o3d = open3d()
     reg = o3d.pipelines.registration
     P = np.asarray(points_C, dtype=np.float64)
@@ -666,8 +680,7 @@ def register(
         return Registration(np.asarray(X_CM_init, dtype=np.float64), 0.0, np.inf, 1.0, len(P))
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
     T = invert_pose(orthonormalised(X_CM_init))  # maps camera points into the model frame
-    d0 = max_distance if max_distance is not None else model.diameter / 4
-    stages = [d0, d0 / 3, d0 / 9] if coarse else [d0]
+    stages = _stages(model, max_distance, coarse)
     criteria = reg.ICPConvergenceCriteria(
         relative_fitness=CONVERGED, relative_rmse=CONVERGED, max_iteration=iterations
     )
@@ -683,6 +696,34 @@ def register(
         depth=depth, camera=camera, obstacle=obstacle,
         free_space_tolerance=free_space_tolerance, occluder=occluder,
     )  # fmt: skip
+
+
+def _stages(model: ModelCloud, max_distance: float | None, coarse: bool) -> list[float]:
+    """Return the correspondence distances of :func:`register`'s stages (coarse to fine)."""
+    d0 = max_distance if max_distance is not None else model.diameter / 4
+    return [d0, d0 / 3, d0 / 9] if coarse else [d0]
+
+
+def _register_numpy(
+    points_C: npt.ArrayLike, model: ModelCloud, X_CM_init: npt.ArrayLike, *,
+    max_distance: float | None, inlier_distance: float, loss: str, iterations: int,
+    coarse: bool, dense: bool, scoring: dict[str, Any],
+) -> Registration:  # fmt: skip
+    """Run :func:`register` with :func:`apo.perception.search.batch_icp` (numpy) as its ICP."""
+    from apo.perception.search import batch_icp
+
+    P = np.asarray(points_C, dtype=np.float64)
+    if len(P) < 3:
+        return Registration(np.asarray(X_CM_init, dtype=np.float64), 0.0, np.inf, 1.0, len(P))
+    T = invert_pose(orthonormalised(X_CM_init))[None]
+    stages = _stages(model, max_distance, coarse)
+    for k, dist in enumerate(stages):
+        dist = max(dist, 2 * inlier_distance)
+        last = k == len(stages) - 1
+        T = batch_icp(P, model, T, distance=dist, scale=inlier_distance if last else dist / 2,
+                      iterations=iterations, dense=last and dense, loss=loss, tol=1e-9)  # fmt: skip
+    X = invert_pose(orthonormalised(T[0]))
+    return evaluate(P, model, X, inlier_distance=inlier_distance, **scoring)
 
 
 def evaluate(
