@@ -189,16 +189,58 @@ def rasterize(
     triangle : ndarray of int, shape (height, width)
         Index of the visible triangle, -1 where none.
     """
-    V = np.asarray(vertices_C, dtype=np.float64)
-    T = np.asarray(triangles, dtype=np.int64)
     W, H = camera.width, camera.height
     depth = np.zeros((H, W), dtype=np.float32)
     tri_img = np.full((H, W), -1, dtype=np.int64)
-    z = V[:, 2]
-    tri_ok = np.all(z[T] > near, axis=1)
-    ids = np.nonzero(tri_ok)[0]
-    if len(ids) == 0:
+    tris = _projected(vertices_C, triangles, camera, near)
+    if tris is None:
         return depth, tri_img
+    ids, U, Vv, Z, umin, umax, vmin, wv, area = tris
+    # One span of candidate pixels per triangle and row (not its whole bounding box).
+    tr, y, px, k = _spans(U, Vv, area, umin, umax, vmin, wv, W)
+    t = tr[k]
+    # Screen-space barycentric coordinates (edge functions), then perspective-correct 1/z;
+    # the row terms are computed once per span (the same values as per pixel).
+    dv0, dv1, dv2 = (Vv[tr, j] - y for j in range(3))
+    u0, u1, u2 = (U[t, j] for j in range(3))
+    w0 = (u1 - px) * dv2[k] - (u2 - px) * dv1[k]
+    w1 = (u2 - px) * dv0[k] - (u0 - px) * dv2[k]
+    a = area[t]
+    b0 = w0 / a
+    b1 = w1 / a
+    b2 = 1.0 - b0 - b1
+    eps = -1e-9
+    sel = np.nonzero((b0 >= eps) & (b1 >= eps) & (b2 >= eps))[0]
+    ts = t[sel]
+    inv_z = b0[sel] / Z[ts, 0] + b1[sel] / Z[ts, 1] + b2[sel] / Z[ts, 2]
+    pos = inv_z > 0
+    pix = y[k[sel[pos]]] * W + px[sel[pos]]
+    _zbuffer(pix, 1.0 / inv_z[pos], ts[pos], ids, depth, tri_img)
+    return depth, tri_img
+
+
+_Projected = tuple[
+    IntArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray, IntArray, IntArray, FloatArray
+]
+
+
+def _projected(
+    vertices_C: npt.ArrayLike, triangles: npt.ArrayLike, camera: Camera, near: float
+) -> _Projected | None:
+    """Return the triangles :func:`rasterize` draws, projected (None when there is none).
+
+    Returns their indices, pixel coordinates ``U``, ``V`` and depths ``Z`` of their corners
+    (``(t, 3)`` each), pixel bounding boxes (first column, last column, first row, rows) and
+    twice their signed pixel areas. Left out: a corner nearer than ``near``, a zero area, no
+    pixel centre in the box.
+    """
+    V = np.asarray(vertices_C, dtype=np.float64)
+    T = np.asarray(triangles, dtype=np.int64)
+    W, H = camera.width, camera.height
+    z = V[:, 2]
+    ids = np.nonzero(np.all(z[T] > near, axis=1))[0]
+    if len(ids) == 0:
+        return None
     Tz = T[ids]
     zv = np.where(z > near, z, 1.0)
     u = camera.fx * V[:, 0] / zv + camera.cx
@@ -211,44 +253,79 @@ def rasterize(
     wu = np.maximum(umax - umin + 1, 0)
     wv = np.maximum(vmax - vmin + 1, 0)
     area = (U[:, 1] - U[:, 0]) * (Vv[:, 2] - Vv[:, 0]) - (U[:, 2] - U[:, 0]) * (Vv[:, 1] - Vv[:, 0])
-    count = wu * wv
-    count[np.abs(area) < 1e-12] = 0
-    keep = count > 0
+    keep = (wu * wv > 0) & (np.abs(area) >= 1e-12)
     if not keep.any():
-        return depth, tri_img
-    ids, U, Vv, Z, umin, vmin, wu, count, area = (
-        a[keep] for a in (ids, U, Vv, Z, umin, vmin, wu, count, area)
+        return None
+    return (
+        ids[keep],
+        U[keep],
+        Vv[keep],
+        Z[keep],
+        umin[keep],
+        umax[keep],
+        vmin[keep],
+        wv[keep],
+        area[keep],
     )
-    total = int(count.sum())
-    t = np.repeat(np.arange(len(ids)), count)
-    start = np.cumsum(count) - count
-    off = np.arange(total) - start[t]
-    px = umin[t] + off % wu[t]
-    py = vmin[t] + off // wu[t]
-    # Screen-space barycentric coordinates (edge functions), then perspective-correct 1/z.
-    Ut, Vt = U[t], Vv[t]
-    w0 = (Ut[:, 1] - px) * (Vt[:, 2] - py) - (Ut[:, 2] - px) * (Vt[:, 1] - py)
-    w1 = (Ut[:, 2] - px) * (Vt[:, 0] - py) - (Ut[:, 0] - px) * (Vt[:, 2] - py)
-    a = area[t]
-    b0 = w0 / a
-    b1 = w1 / a
-    b2 = 1.0 - b0 - b1
-    eps = -1e-9
-    inside = (b0 >= eps) & (b1 >= eps) & (b2 >= eps)
-    Zt = Z[t]
-    inv_z = b0 / Zt[:, 0] + b1 / Zt[:, 1] + b2 / Zt[:, 2]
-    inside &= inv_z > 0
-    px, py, t, inv_z = px[inside], py[inside], t[inside], inv_z[inside]
-    zz = 1.0 / inv_z
-    pix = py * W + px
-    order = np.lexsort((zz, pix))
-    pix_sorted = pix[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = pix_sorted[1:] != pix_sorted[:-1]
-    win = order[first]
-    depth.ravel()[pix[win]] = zz[win]
-    tri_img.ravel()[pix[win]] = ids[t[win]]
-    return depth, tri_img
+
+
+SPAN_MARGIN = 1.0
+"""Pixels added at each end of a triangle's span in a row (the exact test decides inside)."""
+
+
+def _spans(
+    U: FloatArray, V: FloatArray, area: FloatArray, umin: IntArray, umax: IntArray,
+    vmin: IntArray, rows: IntArray, width: int,
+) -> tuple[IntArray, IntArray, IntArray, IntArray]:  # fmt: skip
+    """Candidate pixels of :func:`rasterize`: each triangle's span in each row of its box.
+
+    Along a row each barycentric coordinate is linear in the column, so the columns where
+    all three are non-negative form one interval; it is widened by :data:`SPAN_MARGIN`
+    (plus the coordinates' tolerance) so that rounding never drops a pixel, and left
+    unbounded by an edge nearly parallel to the row. Returns the span's triangle and row
+    (one per span), and per candidate pixel its column and span.
+    """
+    tr = np.repeat(np.arange(len(U)), rows)
+    y = vmin[tr] + (np.arange(len(tr)) - (np.cumsum(rows) - rows)[tr])
+    dv = [V[tr, j] - y for j in range(3)]
+    u = [U[tr, j] for j in range(3)]
+    a = area[tr]
+    # b0 = (c0 - s0 px) / a, b1 = (c1 - s1 px) / a, b2 = 1 - b0 - b1
+    c0, s0 = u[1] * dv[2] - u[2] * dv[1], dv[2] - dv[1]
+    c1, s1 = u[2] * dv[0] - u[0] * dv[2], dv[0] - dv[2]
+    lo, hi = umin[tr].astype(np.float64), umax[tr].astype(np.float64)
+    for g0, gs, s in (
+        (c0 / a, -s0 / a, s0), (c1 / a, -s1 / a, s1), (1.0 - (c0 + c1) / a, (s0 + s1) / a, s0 + s1),
+    ):  # fmt: skip
+        ok = np.abs(s) >= 1e-6  # else nearly parallel to the row: no bound from this edge
+        g = np.where(ok, gs, 1.0)
+        x, m = -g0 / g, SPAN_MARGIN + 2e-9 / np.abs(g)
+        lo = np.where(ok & (gs > 0), np.maximum(lo, x - m), lo)
+        hi = np.where(ok & (gs < 0), np.minimum(hi, x + m), hi)
+    lo_i = np.maximum(np.ceil(np.clip(lo, -1, width)), umin[tr]).astype(np.int64)
+    hi_i = np.minimum(np.floor(np.clip(hi, -1, width)), umax[tr]).astype(np.int64)
+    n = np.maximum(hi_i - lo_i + 1, 0)
+    k = np.repeat(np.arange(len(tr)), n)
+    px = lo_i[k] + (np.arange(len(k)) - (np.cumsum(n) - n)[k])
+    return tr, y, px, k
+
+
+def _zbuffer(
+    pix: IntArray, z: FloatArray, t: IntArray, ids: IntArray,
+    depth: npt.NDArray[np.float32], tri_img: npt.NDArray[np.int64],
+) -> None:  # fmt: skip
+    """Write the nearest candidate of each pixel (``pix``: flat index) into the images.
+
+    Of equal depths the lowest ``t`` wins (as a stable sort by pixel and depth would).
+    """
+    zbuf = np.full(depth.size, np.inf)
+    np.minimum.at(zbuf, pix, z)
+    tie = np.nonzero(z == zbuf[pix])[0]
+    tbuf = np.full(depth.size, len(ids), dtype=np.int64)
+    np.minimum.at(tbuf, pix[tie], t[tie])
+    hit = tbuf < len(ids)
+    depth.ravel()[hit] = zbuf[hit]
+    tri_img.ravel()[hit] = ids[tbuf[hit]]
 
 
 @dataclass(frozen=True)
