@@ -82,7 +82,7 @@ Element = ContactElement
 """
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class State:
     """One contact state of the demonstration (a run of frames with the same contacts).
 
@@ -125,7 +125,7 @@ class State:
     same_as: str | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Transition:
     """A transition between consecutive states.
 
@@ -164,7 +164,7 @@ class Transition:
     )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Rejected:
     """An observed run of frames the repair replaced.
 

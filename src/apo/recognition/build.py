@@ -139,6 +139,7 @@ def rejected_runs(
     for r, (a, b) in enumerate(runs):
         run_of[a : b + 1] = r
     out: list[Rejected] = []
+    labels: dict[int, tuple[str, ...]] = {}  # per observed state: its labels, one tuple shared
     marks = np.where(obs == path, -1, obs)
     for a, b in run_bounds(marks):
         k = int(marks[a])
@@ -175,10 +176,12 @@ def rejected_runs(
                     f"costlier than the neighbouring states ({kept:.2f} + switches "
                     f"{w.switch:g} each vs {chosen:.2f})"
                 )
+        if k not in labels:
+            labels[k] = tuple(_label(e) for e in sorted(keys[k]))
         out.append(
             Rejected(
                 frames=(a, b),
-                elements=tuple(_label(e) for e in sorted(keys[k])),
+                elements=labels[k],
                 replaced_by=tuple(by),
                 reason="; ".join(reasons),
             )
@@ -211,6 +214,7 @@ def build_states(
         if k not in placed:
             placed[k] = _Placed(cand)
         pk = placed[k]
+        X_EG, elements = pk.at(X_s)
         states.append(
             State(
                 id=sid,
@@ -219,8 +223,8 @@ def build_states(
                 singular=pk.singular,
                 fig25=pk.fig25,
                 six=pk.six,
-                elements=pk.at(X_s),
-                X_EG=np.asarray(X_s, dtype=np.float64).copy(),
+                elements=elements,
+                X_EG=X_EG,
                 pose_frame=frame,
                 pose_converged=converged,
                 same_as=first_id.get(k),
@@ -245,6 +249,7 @@ class _Placed:
 
     def __init__(self, cand: CandidateState) -> None:
         self.inv = invert_pose(cand.X_EG)
+        self.seen: dict[bytes, tuple[FloatArray, tuple[Element, ...]]] = {}
         self.records = [element_record(e) for e in cand.state.elements]
         # the DOF numbers, one object shared by every run of the candidate
         dof_r = cand.dof
@@ -252,7 +257,19 @@ class _Placed:
         self.fig25 = cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25))
         self.six = {sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")}
 
-    def at(self, X_s: FloatArray) -> tuple[Element, ...]:
+    def at(self, X_s: FloatArray) -> tuple[FloatArray, tuple[Element, ...]]:
+        """Return the pose ``X_s`` (a copy) and the elements with their points there.
+
+        A pose met again bit for bit (a demonstration repeated) gets the same two objects
+        (the memo lives as long as this object: while the states are made).
+        """
+        key = X_s.tobytes()
+        hit = self.seen.get(key)
+        if hit is None:
+            hit = self.seen[key] = (np.asarray(X_s, dtype=np.float64).copy(), self._place(X_s))
+        return hit
+
+    def _place(self, X_s: FloatArray) -> tuple[Element, ...]:
         """Return the elements with their points where they are at the pose ``X_s``."""
         T = X_s @ self.inv
         out = []
