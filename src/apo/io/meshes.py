@@ -352,9 +352,10 @@ def load_polyhedron(
 
 _LENGTHS: dict[str, float] = {**UNITS, "um": 1e-6, "km": 1e3, "ft": 0.3048}
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
-_POINT = re.compile(rf"\[\s*({_NUM})[,\s]+({_NUM})[,\s]+({_NUM})\s*\]")
-_VOLUME = re.compile(rf"({_NUM}) m\^3")
-_LENGTH = re.compile(rf"({_NUM}) m\b(?!\^)")
+# patterns compiled on first use (``re``'s cache): only a warning's message needs them
+_POINT = rf"\[\s*({_NUM})[,\s]+({_NUM})[,\s]+({_NUM})\s*\]"
+_VOLUME = rf"({_NUM}) m\^3"
+_LENGTH = rf"({_NUM}) m\b(?!\^)"
 
 
 def _model_unit(path: Path, units: str | None) -> str:
@@ -381,9 +382,9 @@ def in_model_units(message: str, unit: str) -> str:
         a, b, c = (float(m.group(i)) / k for i in (1, 2, 3))
         return f"[{a:.6g}, {b:.6g}, {c:.6g}] {unit}"
 
-    message = _POINT.sub(point, message)
-    message = _VOLUME.sub(lambda m: f"{float(m.group(1)) / k**3:.3g} {unit}^3", message)
-    return _LENGTH.sub(lambda m: f"{float(m.group(1)) / k:.3g} {unit}", message)
+    message = re.sub(_POINT, point, message)
+    message = re.sub(_VOLUME, lambda m: f"{float(m.group(1)) / k**3:.3g} {unit}^3", message)
+    return re.sub(_LENGTH, lambda m: f"{float(m.group(1)) / k:.3g} {unit}", message)
 
 
 def _strip_label(message: str, label: str) -> str:

@@ -1,0 +1,50 @@
+"""``apo <command>`` parsed by that command's parser alone, as by the full parser."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from apo.cli import COMMANDS, build_parser
+
+LINES = [
+    ["analyze", "demo.pose.list", "--out", "o", "--json", "--threshold", "3", "--noise", "1,2"],
+    ["analyze", "frames", "--grasped", "g.stl", "--environment", "e.stl", "--no-report"],
+    ["report", "task.json"],
+    ["figures", "task.json", "--out", "f"],
+]
+
+
+@pytest.mark.parametrize("line", LINES)
+def test_one_command_parser_gives_the_full_parsers_namespace(line: list[str]) -> None:
+    full = vars(build_parser().parse_args(line))
+    one = vars(build_parser(line[0]).parse_args(line))
+    assert one == full
+
+
+def test_every_command_is_registered_by_its_module() -> None:
+    full = build_parser()
+    (sub,) = (a for a in full._actions if a.dest == "command")
+    assert tuple(sub.choices) == COMMANDS
+    for name in COMMANDS:
+        one = build_parser(name)
+        (s,) = (a for a in one._actions if a.dest == "command")
+        assert list(s.choices) == [name]
+
+
+def test_analyze_imports_no_other_command_module() -> None:
+    code = (
+        "import sys\n"
+        "from apo.cli import main\n"
+        "try:\n"
+        "    main(['analyze', '--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "print(sorted(m for m in sys.modules if m.startswith('apo.cli.')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    loaded = out.stdout.strip().splitlines()[-1]
+    assert "apo.cli.analyze" in loaded
+    assert "apo.cli.demo" not in loaded and "apo.cli.replay" not in loaded
