@@ -20,6 +20,7 @@ import sys
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from types import ModuleType
 
 from apo.errors import ApoError
 
@@ -59,9 +60,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"apo {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     if only is not None:
-        import importlib
-
-        importlib.import_module(f"apo.cli.{only}").register(sub)
+        _command_module(only).register(sub)
         return parser
     # Plain imports (tools see them); inside the function because the command modules
     # import this package. One line per command, in the order `apo --help` lists them.
@@ -70,6 +69,47 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     for module in (dof, contacts, analyze, demo, track, report, figures, plan, replay):
         module.register(sub)
     return parser
+
+
+def _command_module(name: str) -> ModuleType:
+    """Import and return the module ``apo.cli.<name>`` of one command (plain imports)."""
+    if name == "analyze":
+        from apo.cli import analyze
+
+        return analyze
+    if name == "contacts":
+        from apo.cli import contacts
+
+        return contacts
+    if name == "demo":
+        from apo.cli import demo
+
+        return demo
+    if name == "dof":
+        from apo.cli import dof
+
+        return dof
+    if name == "figures":
+        from apo.cli import figures
+
+        return figures
+    if name == "plan":
+        from apo.cli import plan
+
+        return plan
+    if name == "replay":
+        from apo.cli import replay
+
+        return replay
+    if name == "report":
+        from apo.cli import report
+
+        return report
+    if name == "track":
+        from apo.cli import track
+
+        return track
+    raise ValueError(f"unknown command {name!r}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

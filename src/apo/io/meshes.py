@@ -14,6 +14,7 @@ stores float32, so STEP coordinates are exact to about 1e-7 relative.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -75,6 +76,20 @@ def step_length_unit(path: str | Path) -> str | None:
         ``"m"``, ``"cm"``, ``"mm"``, ``"um"``, ``"km"``, ``"in"`` or ``"ft"``: the unit of the
         ``LENGTH_UNIT`` that the file's ``GLOBAL_UNIT_ASSIGNED_CONTEXT`` entities use, when
         they all use the same one; None otherwise.
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return _step_length_unit(os.path.abspath(path), -1, -1)  # raises as the read does
+    return _step_length_unit(os.path.abspath(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _step_length_unit(path: str, size: int, mtime_ns: int) -> str | None:
+    """Return :func:`step_length_unit` of the file of this size and mtime (read once).
+
+    Loading a STEP model asks twice (the cache key, the messages' unit); a changed file
+    (another size or mtime) is read again.
     """
     text = Path(path).read_text(encoding="latin-1", errors="replace")
     entities = {

@@ -1,4 +1,4 @@
-"""``apo <command>`` parsed by that command's parser alone, as by the full parser."""
+"""Cold-start paths of `apo <command>`: one command's parser, a STEP file's unit read once."""
 
 from __future__ import annotations
 
@@ -48,3 +48,31 @@ def test_analyze_imports_no_other_command_module() -> None:
     loaded = out.stdout.strip().splitlines()[-1]
     assert "apo.cli.analyze" in loaded
     assert "apo.cli.demo" not in loaded and "apo.cli.replay" not in loaded
+
+
+def test_step_length_unit_reads_a_changed_file_again(tmp_path: object) -> None:
+    import os
+    from pathlib import Path
+
+    from apo.io.meshes import step_length_unit
+
+    # the unit entities of a minimal STEP file, in mm, then in m
+    body = (
+        "ISO-10303-21;\nDATA;\n#1=(LENGTH_UNIT()NAMED_UNIT(*)SI_UNIT({p},.METRE.));\n"
+        "#2=(GEOMETRIC_REPRESENTATION_CONTEXT(3)GLOBAL_UNIT_ASSIGNED_CONTEXT((#1)));\n"
+        "ENDSEC;\nEND-ISO-10303-21;\n"
+    )
+    f = Path(str(tmp_path)) / "part.step"
+    f.write_text(body.format(p=".MILLI."))
+    assert step_length_unit(f) == "mm"
+    assert step_length_unit(str(f)) == "mm"
+    f.write_text(body.format(p="$") + "\n")  # another size
+    os.utime(f, ns=(1, 1))
+    assert step_length_unit(f) == "m"
+    missing = Path(str(tmp_path)) / "missing.step"
+    try:
+        step_length_unit(missing)
+    except OSError:
+        pass
+    else:  # pragma: no cover
+        raise AssertionError("a missing file reads as an OSError")
