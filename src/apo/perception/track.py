@@ -23,6 +23,9 @@
 5. **Lost tracking**: a frame whose confidence is below ``min_confidence`` (or with too few
    points) is re-initialised globally; if that fails too, the frame is marked lost
    (pose NaN, ``lost`` True) and never reported as a pose.
+6. **Smoothing** (``smooth``, default on): once every frame is tracked, each pose is
+   re-estimated from the frames on both sides (:mod:`apo.perception.smoothing`), keeping
+   the jumps and kinks of contacts sharp.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import TrackingLostError
+from apo.perception.environment import refine_environment, surface_depth
 from apo.perception.frames import Camera, FrameSource, masked_median, open_frames
 from apo.perception.register import (
     ModelCloud,
@@ -44,6 +48,7 @@ from apo.perception.register import (
     evaluate,
     initialise,
     orthonormalised,
+    plausibility,
     register,
     register_projective,
 )
@@ -61,6 +66,7 @@ from apo.perception.segment import (
     occupancy,
     static_mask,
 )
+from apo.perception.smoothing import smooth_poses
 from apo.spatial import invert_pose, transform_points
 from apo.symmetry import Symmetry, nearest_twin, symmetries
 from apo.typing import BoolArray, FloatArray, IntArray
@@ -132,6 +138,15 @@ class TrackOptions:
     surface_tolerance : float
         Floor of the depth tolerance within which an observed pixel explains the model's
         rendered surface (the confidence; otherwise ``noise_sigmas`` noise sigmas).
+    smooth : bool
+        Smooth the grasped object's poses over neighbouring frames once all are tracked
+        (:func:`apo.perception.smoothing.smooth_poses`: local constant-velocity fits on
+        windows of up to 7 frames, the best-fitting window containing the frame, so that
+        jumps and kinks at contacts stay sharp); False: each frame's own registration.
+    refine_environment : bool
+        Refine the environment's pose, once found, by the projective ICP on the mean depth of
+        its pixels over the histogram's frames (:mod:`apo.perception.environment`); False:
+        the closest-point ICP's pose on their median depth, as before session 4.
     projective : bool
         Register frame to frame by projective point-to-plane ICP first
         (:func:`apo.perception.register.register_projective`); the Open3D closest-point ICP
@@ -160,6 +175,8 @@ class TrackOptions:
     surface_tolerance: float = 0.003
     projective: bool = True
     seed: int = 0
+    refine_environment: bool = True
+    smooth: bool = True
 
 
 @dataclass(frozen=True)
@@ -171,7 +188,8 @@ class TrackResult:
     times : ndarray, shape (N,)
         Seconds.
     X_CG : ndarray, shape (N, 4, 4)
-        Grasped object in the camera frame; NaN where ``lost``.
+        Grasped object in the camera frame; NaN where ``lost``; smoothed over neighbouring
+        frames unless ``TrackOptions.smooth`` is False.
     X_CE : ndarray, shape (4, 4)
         Environment object in the camera frame (static: one pose for the whole sequence).
     X_EG : ndarray, shape (N, 4, 4)
@@ -364,8 +382,11 @@ def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> 
 
 def _environment_points(
     src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame]
-) -> tuple[list[FloatArray], npt.NDArray[np.float32]]:
-    """Return the static regions' points (median depth of their pixels) and the median depth.
+) -> tuple[list[FloatArray], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """Return the static regions' points (median depth of their pixels) and two depths.
+
+    The median of every pixel over at most 9 frames (for the surface check), and the
+    static pixels' surface depth over all the frames (:func:`surface_depth`; 0 elsewhere).
 
     The regions are the largest connected components of the static pixels, largest first
     (:func:`_components`). The frames decoded are kept in ``cache`` for the tracking loop
@@ -395,7 +416,8 @@ def _environment_points(
     few = depths[:: max(1, -(-len(depths) // 9))]
     median_all = masked_median(few, few > 0)
     lab, n = _components(static & (median > 0))
-    return [src.camera.backproject(median, lab == k) for k in range(1, n + 1)], median_all
+    regions = [src.camera.backproject(median, lab == k) for k in range(1, n + 1)]
+    return regions, median_all, surface_depth(depths, median > 0, seg.noise)
 
 
 NO_COLOUR = np.zeros((0, 0, 3), dtype=np.uint8)
@@ -425,33 +447,45 @@ def _in_gate(points: FloatArray, centre: FloatArray, radius: float) -> BoolArray
     return np.asarray(np.einsum("ij,ij->i", points - centre, points - centre) <= radius * radius)
 
 
-def _object_near_largest(
-    mask: BoolArray, depth: npt.NDArray[np.float32], camera: Camera, reach: float
-) -> FloatArray:
-    """Return the points of the largest component and of the components near it (3-D).
+def _object_groups(
+    mask: BoolArray, depth: npt.NDArray[np.float32], camera: Camera, reach: float,
+    *, limit: int = 3, share: float = 0.25,
+) -> list[FloatArray]:  # fmt: skip
+    """Return the points of the largest components, each with the components near it (3-D).
 
-    The global path has no prediction to gate with: it takes the largest connected
-    component and every other one (of at least 5 % of its size) whose centroid is within
-    ``reach`` (the model's diameter) of its centroid: a hand across the part cuts its image
-    in two, and the largest piece alone is ambiguous.
+    The global path has no prediction to gate with. The first group is the largest
+    connected component and every other one (of at least 5 % of its size) whose centroid is
+    within ``reach`` (the model's diameter) of its centroid: a hand across the part cuts its
+    image in two, and the largest piece alone is ambiguous. The next groups start from the
+    largest components left (at least ``share`` of the largest; at most ``limit`` groups):
+    without the colour, a forearm whose depth jumps away from the hand is the largest
+    component, the hand and the part it holds the second.
     """
     from scipy import ndimage
 
     labels, n = ndimage.label(mask & (depth > 0))
     pts = camera.backproject(depth, labels > 0)
     if n <= 1:
-        return pts
+        return [pts]
     lab = labels[labels > 0]  # the same row-major order as the points
     sizes = np.bincount(lab, minlength=n + 1).astype(np.float64)
+    sizes[0] = 0.0
     centroids = (
         np.stack([np.bincount(lab, weights=pts[:, k], minlength=n + 1) for k in range(3)], axis=1)
         / np.maximum(sizes, 1.0)[:, None]
     )
-    big = int(np.argmax(sizes))
-    near = np.linalg.norm(centroids - centroids[big], axis=1) <= reach
-    keep = near & (sizes >= 0.05 * sizes[big])
-    keep[0] = False
-    return np.asarray(pts[keep[lab]])
+    groups: list[FloatArray] = []
+    left = sizes.copy()
+    while len(groups) < limit:
+        big = int(np.argmax(left))
+        if left[big] <= 0 or (groups and left[big] < share * sizes.max()):
+            break
+        near = np.linalg.norm(centroids - centroids[big], axis=1) <= reach
+        keep = near & (left >= 0.05 * left[big])
+        keep[big] = True
+        left[keep] = 0.0
+        groups.append(np.asarray(pts[keep[lab]]))
+    return groups
 
 
 @dataclass
@@ -505,7 +539,7 @@ def _open_scene(
 def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     """Register the environment on the median depth of its pixels over many frames."""
     opt, E, cam = scene.opt, scene.E, scene.camera
-    parts, median_depth = _environment_points(scene.src, scene.seg, opt, scene.cache)
+    parts, median_depth, surface = _environment_points(scene.src, scene.seg, opt, scene.cache)
     parts = [p for p in parts if len(p) >= opt.min_points]
     if not parts:
         raise TrackingLostError(
@@ -538,6 +572,8 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     assert env is not None
     if XE0 is None:
         env = _trimmed(env, env_points, scene, median_depth)
+    if opt.refine_environment:
+        env = _refined(env, env_points, scene, median_depth, surface)
     if env.confidence < opt.min_confidence:
         hint = (
             "; give its pose in the camera frame with --init-environment "
@@ -579,6 +615,23 @@ def _trimmed(
     r = evaluate(sub, scene.E, invert_pose(T[0]), inlier_distance=inl, depth=depth,
                  camera=scene.camera, free_space_tolerance=kw["free_space_tolerance"])  # fmt: skip
     return r if r.confidence >= env.confidence else env
+
+
+def _refined(
+    env: Registration, points: FloatArray, scene: _Scene, depth: npt.NDArray[np.float32],
+    surface: npt.NDArray[np.float32],
+) -> Registration:  # fmt: skip
+    """Refine the environment's pose on its surface depth (:func:`refine_environment`).
+
+    Kept when its confidence (on the median depth) is not lower by more than 0.01.
+    """
+    E, cam, n = scene.E, scene.camera, min(len(scene.src), scene.opt.histogram_frames)
+    X = refine_environment(surface, depth, cam, E, env.X_CM, scene.noise, n,
+                           _window(cam, env.X_CM, E, 0.01))  # fmt: skip
+    kw = scene.settings(points)
+    r = evaluate(points, E, X, inlier_distance=kw["inlier_distance"], depth=depth, camera=cam,
+                 free_space_tolerance=kw["free_space_tolerance"])  # fmt: skip
+    return r if r.confidence >= env.confidence - 0.01 else env
 
 
 def _environment_colour(scene: _Scene, frames: int = 5) -> ColourModel:
@@ -642,11 +695,10 @@ class _Tracker:
         c = transform_points(pred, self.centre[None])[0]
         return c, self.G.diameter / 2 + self.margin + speed
 
-    def points(
-        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None,
-        gate: tuple[FloatArray, float] | None = None,
-    ) -> _Observed:  # fmt: skip
-        """Observed points of the grasped object; the depth, camera, environment depth, mask."""
+    def _masked(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None
+    ) -> tuple[npt.NDArray[np.float32], Camera, npt.NDArray[np.float32], BoolArray]:
+        """Return the window's depth, camera, environment depth and the grasped object's pixels."""
         s = self.scene
         env_d, d, c = s.env_depth, depth, s.camera
         if window is not None:
@@ -656,8 +708,26 @@ class _Tracker:
             c = c.crop(u0, v0, w, h)
         env_thr = s.seg.threshold(d, self.opt.environment_threshold, 1)
         mask = grasped_mask(s.seg.objects(rgb, depth, window), d, env_d, threshold=env_thr)
+        return d, c, env_d, mask
+
+    def _subset(self, pts: FloatArray) -> FloatArray:
+        """At most ``max_points`` of the points (random subset)."""
+        if len(pts) > self.opt.max_points:
+            pts = pts[self.rng.choice(len(pts), self.opt.max_points, replace=False)]
+        return pts
+
+    def points(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None,
+        gate: tuple[FloatArray, float] | None = None,
+    ) -> _Observed:  # fmt: skip
+        """Observed points of the grasped object; the depth, camera, environment depth, mask.
+
+        Without a window: the first group of :func:`_object_groups` (the largest component
+        and those near it).
+        """
+        d, c, env_d, mask = self._masked(rgb, depth, window)
         if window is None:
-            pts = _object_near_largest(mask, d, c, self.G.diameter)
+            pts = _object_groups(mask, d, c, self.G.diameter, limit=1)[0]
         else:
             pts = c.backproject(d, mask)  # clutter: removed by the 3-D gate
         if gate is not None:
@@ -665,9 +735,7 @@ class _Tracker:
             pts = pts[inside]
             mask = mask & (d > 0)
             mask[mask] = inside  # backproject's row-major order
-        if len(pts) > self.opt.max_points:
-            pts = pts[self.rng.choice(len(pts), self.opt.max_points, replace=False)]
-        return _Observed(pts, d, c, env_d, mask)
+        return _Observed(self._subset(pts), d, c, env_d, mask)
 
     def good(self, r: Registration) -> bool:
         """Confident, explaining its points and fitting them as closely as the last frames did.
@@ -752,15 +820,26 @@ class _Tracker:
     def reinitialise(
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]
     ) -> Registration | None:
-        """Run the global search on the whole frame's largest component."""
-        pts, d, c, env_d, _ = self.points(rgb, depth, None)
-        if len(pts) < self.opt.min_points:
-            return None
-        return initialise(
-            pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
-            symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
-            **self.scene.settings(pts),
-        )  # fmt: skip
+        """Run the global search on the whole frame's largest groups of components.
+
+        Each group (:func:`_object_groups`: without the colour, a forearm apart from the
+        hand and the part it holds is the largest) is searched; the most plausible result
+        (:func:`apo.perception.register.plausibility`) wins.
+        """
+        d, c, env_d, mask = self._masked(rgb, depth, None)
+        best: Registration | None = None
+        for pts in _object_groups(mask, d, c, self.G.diameter):
+            pts = self._subset(pts)
+            if len(pts) < self.opt.min_points:
+                continue
+            r = initialise(
+                pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
+                symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
+                **self.scene.settings(pts),
+            )  # fmt: skip
+            if best is None or plausibility(r) > plausibility(best):
+                best = r
+        return best
 
     def step(self, i: int, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]) -> None:
         """Track frame ``i``: from the prediction, else (real loss) by the global search."""
@@ -792,11 +871,17 @@ class _Tracker:
 
 
 def _better(a: Registration, b: Registration | None) -> bool:
-    """More confident; as confident (within 0.02): higher quality, then smaller RMS residual."""
+    """More plausible; as plausible (within 0.02): higher quality, then smaller RMS residual.
+
+    :func:`apo.perception.register.plausibility`: the confidence less the share of the
+    outline the observed surface continues (without the colour, a pose inside the hand's
+    boxes explains as much of its surface as the true one).
+    """
     if b is None:
         return True
-    if abs(a.confidence - b.confidence) > 0.02:
-        return a.confidence > b.confidence
+    pa, pb = plausibility(a)[0], plausibility(b)[0]
+    if abs(pa - pb) > 0.02:
+        return pa > pb
     if abs(a.quality - b.quality) > 0.01:
         return a.quality > b.quality
     return a.rmse < b.rmse
@@ -869,9 +954,15 @@ def track_frames(
             f"{tracker.conf.max():.2f} < {opt.min_confidence})"
         )
     assert scene.env is not None
-    X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), tracker.X_CG)
+    times = np.asarray(src.times, dtype=np.float64)
+    X_CG = tracker.X_CG
+    if opt.smooth:  # offline: each pose from the frames on both sides
+        X_CG = smooth_poses(
+            times, X_CG, ~tracker.lost, centre=tracker.centre, restart=tracker.reinit
+        )
+    X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), X_CG)
     return TrackResult(
-        np.asarray(src.times, dtype=np.float64), tracker.X_CG, scene.X_CE, X_EG,
+        times, X_CG, scene.X_CE, X_EG,
         tracker.conf, tracker.lost, scene.env.confidence, src.camera.X_WC,
         tracker.reinit, scene.syms_G, scene.syms_E,
     )  # fmt: skip
