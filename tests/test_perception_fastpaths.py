@@ -1,10 +1,15 @@
 """The tracker's fast paths give the results of the paths they replace (randomised cases).
 
 - ``register(engine="numpy")`` (the tracker's closest-point fallback, no Open3D import)
-  against Open3D's ICP from the same start, on noisy partial views with clutter.
+  against Open3D's ICP from the same start, on noisy partial views with clutter;
+- the histogram's frames decoded in a thread pool (``_prefetch``) against decoded in turn,
+  on rendered random variants.
 """
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -55,3 +60,39 @@ def test_unknown_engine_is_an_error() -> None:
     peg, _ = peg_and_slot()
     with pytest.raises(ValueError, match="engine"):
         register(np.zeros((10, 3)), ModelCloud(peg), np.eye(4), engine="pcl")
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_prefetched_histogram_frames_give_the_same_environment_points(
+    tmp_path: Path, seed: int
+) -> None:
+    """Frames decoded in a thread pool while the scene opens: the same points and cache."""
+    from apo.perception.frames import open_frames
+    from apo.perception.track import (
+        TrackOptions,
+        _environment_points,
+        _noise_model,
+        _prefetch,
+        _Segmenter,
+    )
+    from apo.perception.variants import random_variant, render_variant
+
+    r = render_variant(random_variant(seed, n_frames=16), tmp_path / "frames")
+    src = open_frames(r.frames)
+    opt = TrackOptions(histogram_frames=7)
+    seg = _Segmenter(src, opt, _noise_model(src, opt))
+    cache: dict = {}
+    parts, median = _environment_points(src, seg, opt, cache)
+    cache_p: dict = {}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        prefetch = _prefetch(pool, src, opt)
+        parts_p, median_p = _environment_points(src, seg, opt, cache_p, prefetch)
+    assert not prefetch  # every prefetched frame was used
+    assert len(parts) == len(parts_p) >= 1
+    for a, b in zip(parts, parts_p, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(median, median_p)
+    assert sorted(cache) == sorted(cache_p) and len(cache) == 7
+    for i in cache:
+        for a, b in zip(cache[i], cache_p[i], strict=True):
+            np.testing.assert_array_equal(a, b)
