@@ -82,16 +82,17 @@ def test_prefetched_histogram_frames_give_the_same_environment_points(
     opt = TrackOptions(histogram_frames=7)
     seg = _Segmenter(src, opt, _noise_model(src, opt))
     cache: dict = {}
-    parts, median = _environment_points(src, seg, opt, cache)
+    parts, median, surface = _environment_points(src, seg, opt, cache)
     cache_p: dict = {}
     with ThreadPoolExecutor(max_workers=2) as pool:
         prefetch = _prefetch(pool, src, opt)
-        parts_p, median_p = _environment_points(src, seg, opt, cache_p, prefetch)
+        parts_p, median_p, surface_p = _environment_points(src, seg, opt, cache_p, prefetch)
     assert not prefetch  # every prefetched frame was used
     assert len(parts) == len(parts_p) >= 1
     for a, b in zip(parts, parts_p, strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(median, median_p)
+    np.testing.assert_array_equal(surface, surface_p)
     assert sorted(cache) == sorted(cache_p) and len(cache) == 7
     for i in cache:
         for a, b in zip(cache[i], cache_p[i], strict=True):

@@ -174,38 +174,48 @@ class BatchCorrection:
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """Cross product of broadcast (..., 3) arrays (cheaper than ``np.cross`` for small ones)."""
-    out: FloatArray = np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
+    out: FloatArray = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
     return out
 
 
 def _poses_from_twists(xi: FloatArray) -> FloatArray:
     """Batched ``apo.spatial.pose_from_twist``: twists (n, 6) ``[omega; v]`` -> poses (n, 4, 4)."""
-    w, v = xi[:, :3], xi[:, 3:]
-    th = np.sqrt(np.einsum("ni,ni->n", w, w))
-    small = th < tol.twist_series_angle
-    ths = np.where(small, 1.0, th)
-    A = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
-    B = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
-    C = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (1.0 - A) / ths**2)
     n = xi.shape[0]
-    W = np.zeros((n, 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    W2 = W @ W
+    A, B, C, W, W2 = _twist_terms(xi[:, :3], rotation_only=False)
     eye = np.eye(3)
     out = np.zeros((n, 4, 4))
     out[:, 3, 3] = 1.0
     out[:, :3, :3] = eye + A[:, None, None] * W + B[:, None, None] * W2
     V = eye + B[:, None, None] * W + C[:, None, None] * W2
-    out[:, :3, 3] = np.einsum("nij,nj->ni", V, v)
+    out[:, :3, 3] = np.einsum("nij,nj->ni", V, xi[:, 3:])
     return out
+
+
+def _twist_terms(
+    w: FloatArray, *, rotation_only: bool
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Return the series ``A, B, C`` of rotation vectors ``w`` (n, 3), ``W = [w]x``, ``W @ W``.
+
+    ``C`` (the translation's series) is left empty when ``rotation_only``.
+    """
+    th = np.sqrt(np.einsum("ni,ni->n", w, w))
+    small = th < tol.twist_series_angle
+    ths = np.where(small, 1.0, th)
+    A = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
+    B = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+    C = _EMPTY if rotation_only else np.where(small, 1.0 / 6.0 - th**2 / 120.0, (1.0 - A) / ths**2)
+    W = np.zeros((w.shape[0], 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    return A, B, C, W, W @ W
+
+
+_EMPTY = np.zeros(0)
 
 
 def _damped_svd_step(J: FloatArray, r: FloatArray, lam: FloatArray, rcond: float) -> FloatArray:
@@ -233,12 +243,21 @@ def _step_poses(omega: FloatArray, v_c: FloatArray, c: FloatArray) -> FloatArray
     The result is ``pose_from_twist(xi)`` for the twist ``xi`` of that screw motion; built
     directly so that the centroid moves by exactly ``v_c`` (metres; ``omega`` in rad).
     """
-    R = _poses_from_twists(np.concatenate([omega, np.zeros_like(omega)], axis=1))[:, :3, :3]
+    # the rotation block of _poses_from_twists([omega; 0]), the same numbers (the rotation
+    # vector read from a 6-column row, as there)
+    w = np.concatenate([omega, np.zeros_like(omega)], axis=1)[:, :3]
+    A, B, _C, W, W2 = _twist_terms(w, rotation_only=True)
     out = np.zeros((len(omega), 4, 4))
     out[:, 3, 3] = 1.0
-    out[:, :3, :3] = R
+    R = out[:, :3, :3]
+    R[...] = np.eye(3) + A[:, None, None] * W + B[:, None, None] * W2
     out[:, :3, 3] = c + v_c - np.einsum("nij,nj->ni", R, c)
     return out
+
+
+#: Take the trial arrays as they are when every frame's whole step is accepted (the usual
+#: case), instead of copying them row by row: the same numbers (a switch for the tests).
+_WHOLE_STEPS_AT_ONCE = True
 
 
 def _check_poses(X_EG_seq: npt.ArrayLike) -> FloatArray:
@@ -598,13 +617,18 @@ class ContactConstraints:
             omega = y[:, :3] / L
             alpha = np.ones(len(idx))
             accepted = np.zeros(len(idx), dtype=bool)
-            Xn, rn, Jn = Xi.copy(), ri.copy(), Ji.copy()
+            # the gathered copies take the accepted rows (a row left to halve is only read)
+            Xn, rn, Jn = Xi, ri, Ji
             todo = np.arange(len(idx))
             for _h in range(_MAX_HALVINGS + 1):
                 a = alpha[todo, None]
                 Xt = _step_poses(a * omega[todo], a * y[todo, 3:], c[todo]) @ Xi[todo]
                 rt, Jt = self._residuals(Xt[:, :3, :3], Xt[:, :3, 3])
                 ok = np.einsum("nk,nk->n", rt, rt) < _STALL * cost[todo]
+                if _WHOLE_STEPS_AT_ONCE and _h == 0 and ok.all():  # the usual case
+                    Xn, rn, Jn = Xt, rt, Jt
+                    accepted[:] = True
+                    break
                 good = todo[ok]
                 Xn[good], rn[good], Jn[good] = Xt[ok], rt[ok], Jt[ok]
                 accepted[good] = True

@@ -88,7 +88,9 @@ def track_from_args(
         colour = ColourModel(_colour_arg(args.colour), args.colour_tolerance)
     if not 0.0 <= args.min_confidence <= 1.0:
         raise InputFormatError(f"--min-confidence must be in [0, 1], got {args.min_confidence}")
-    options = TrackOptions(colour=colour, min_confidence=args.min_confidence)
+    options = TrackOptions(
+        colour=colour, min_confidence=args.min_confidence, smooth=getattr(args, "smooth", True)
+    )
     return track_frames(
         frames,
         grasped,
@@ -301,6 +303,13 @@ def add_tracking_options(p: argparse.ArgumentParser) -> None:
         metavar="C",
         default=0.8,
         help="frames below this confidence are re-initialised, then lost (default 0.8)",
+    )
+    p.add_argument(
+        "--smooth",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="smooth the grasped object's poses over neighbouring frames, keeping the jumps "
+        "and kinks of contacts sharp (default); --no-smooth: each frame's own registration",
     )
 
 

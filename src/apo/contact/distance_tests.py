@@ -30,10 +30,10 @@ from apo.typing import FloatArray, IntArray
 _SPHERE_MARGIN = 1.0 + tol.sphere_margin
 
 
-def _point_triangle_distance(
+def _triangle_terms(
     p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
-) -> FloatArray:
-    """Distance from points to triangles, row-wise (Ericson, RTCD 5.1.5)."""
+) -> tuple[FloatArray, FloatArray, tuple[FloatArray, ...], tuple[FloatArray, ...]]:
+    """Edges ``ab``, ``ac``, the dot products ``d1 .. d6`` and ``va, vb, vc`` of Ericson's test."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = _dot(ab, ap), _dot(ac, ap)
     bp = p - b
@@ -43,26 +43,44 @@ def _point_triangle_distance(
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
+    return ab, ac, (d1, d2, d3, d4, d5, d6), (va, vb, vc)
+
+
+def _point_triangle_distance(
+    p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
+) -> FloatArray:
+    """Distance from points to triangles, row-wise (Ericson, RTCD 5.1.5).
+
+    Each row's closest point is computed only by the formula of its Voronoi region (the
+    last region of Ericson's order that holds), with the same arithmetic as evaluating every
+    formula at every row and selecting: the same distances bit for bit, in fewer passes
+    (``tests/test_contact_fast_paths.py`` keeps that form as the reference).
+    """
+    ab, ac, (d1, d2, d3, d4, d5, d6), (va, vb, vc) = _triangle_terms(p, a, b, c)
+    region = np.zeros(len(p), dtype=np.int8)  # 0: inside the face
+    region[(va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)] = 1  # edge bc
+    region[(vb <= 0) & (d2 >= 0) & (d6 <= 0)] = 2  # edge ac
+    region[(d6 >= 0) & (d5 <= d6)] = 3  # vertex c
+    region[(vc <= 0) & (d1 >= 0) & (d3 <= 0)] = 4  # edge ab
+    region[(d3 >= 0) & (d4 <= d3)] = 5  # vertex b
+    region[(d1 <= 0) & (d2 <= 0)] = 6  # vertex a
+    q = np.empty_like(p)
     with np.errstate(divide="ignore", invalid="ignore"):
-        den = va + vb + vc
-        v = np.where(den != 0, vb / den, 0.0)
-        w = np.where(den != 0, vc / den, 0.0)
-        q = a + v[:, None] * ab + w[:, None] * ac
-        wbc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        q = np.where(m[:, None], b + wbc[:, None] * (c - b), q)
-        wac = d2 / (d2 - d6)
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        q = np.where(m[:, None], a + wac[:, None] * ac, q)
-        m = (d6 >= 0) & (d5 <= d6)
-        q = np.where(m[:, None], c, q)
-        vab = d1 / (d1 - d3)
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        q = np.where(m[:, None], a + vab[:, None] * ab, q)
-        m = (d3 >= 0) & (d4 <= d3)
-        q = np.where(m[:, None], b, q)
-        m = (d1 <= 0) & (d2 <= 0)
-        q = np.where(m[:, None], a, q)
+        i = np.flatnonzero(region == 0)
+        den = va[i] + vb[i] + vc[i]
+        v = np.where(den != 0, vb[i] / den, 0.0)
+        w = np.where(den != 0, vc[i] / den, 0.0)
+        q[i] = a[i] + v[:, None] * ab[i] + w[:, None] * ac[i]
+        i = np.flatnonzero(region == 1)
+        e43, e56 = d4[i] - d3[i], d5[i] - d6[i]
+        q[i] = b[i] + (e43 / (e43 + e56))[:, None] * (c[i] - b[i])
+        i = np.flatnonzero(region == 2)
+        q[i] = a[i] + (d2[i] / (d2[i] - d6[i]))[:, None] * ac[i]
+        i = np.flatnonzero(region == 4)
+        q[i] = a[i] + (d1[i] / (d1[i] - d3[i]))[:, None] * ab[i]
+    for k, corner in ((3, c), (5, b), (6, a)):
+        i = np.flatnonzero(region == k)
+        q[i] = corner[i]
     return _norm(p - q)
 
 
@@ -149,10 +167,14 @@ def _nearest_face(
     if len(ii) == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_F
     key = ii * md.nf + ff
-    order = np.lexsort((dist, key))
-    key, dist = key[order], dist[order]
-    first = np.concatenate([[True], key[1:] != key[:-1]])
-    key, dist = key[first], dist[first]
+    if np.any(key[1:] < key[:-1]):  # pairs not by (point, triangle): sort them
+        order = np.argsort(key, kind="stable")
+        key, dist = key[order], dist[order]
+    # pairs come by (point, triangle) and a face's triangles are consecutive: each
+    # (point, face) is a run of keys; its distance is the run's least
+    first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    dist = np.minimum.reduceat(dist, first)
+    key = key[first]
     return rows[key // md.nf], key % md.nf, dist
 
 

@@ -369,11 +369,14 @@ def _group_sets(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntA
     M[:, 0] = cnt
     slot = np.arange(len(frame)) - (np.cumsum(cnt) - cnt)[frame]
     M[frame, slot + 1] = code
-    _, first, inverse = np.unique(M, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return rank[inverse.ravel()], first[order]
+    # rows as bytes into a dict: labels in order of first appearance, no sort of the rows
+    index: dict[bytes, int] = {}
+    labels = np.fromiter(
+        (index.setdefault(r, len(index)) for r in map(bytes, M)), np.int64, count=n
+    )
+    first = np.full(len(index), n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
+    return labels, first
 
 
 def find_contacts(

@@ -23,6 +23,9 @@
 5. **Lost tracking**: a frame whose confidence is below ``min_confidence`` (or with too few
    points) is re-initialised globally; if that fails too, the frame is marked lost
    (pose NaN, ``lost`` True) and never reported as a pose.
+6. **Smoothing** (``smooth``, default on): once every frame is tracked, each pose is
+   re-estimated from the frames on both sides (:mod:`apo.perception.smoothing`), keeping
+   the jumps and kinks of contacts sharp.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.errors import TrackingLostError
+from apo.perception.environment import refine_environment, surface_depth
 from apo.perception.frames import Camera, FrameSource, masked_median, open_frames
 from apo.perception.register import (
     ModelCloud,
@@ -61,6 +65,7 @@ from apo.perception.segment import (
     occupancy,
     static_mask,
 )
+from apo.perception.smoothing import smooth_poses
 from apo.spatial import invert_pose, transform_points
 from apo.symmetry import Symmetry, nearest_twin, symmetries
 from apo.typing import BoolArray, FloatArray, IntArray
@@ -132,6 +137,15 @@ class TrackOptions:
     surface_tolerance : float
         Floor of the depth tolerance within which an observed pixel explains the model's
         rendered surface (the confidence; otherwise ``noise_sigmas`` noise sigmas).
+    smooth : bool
+        Smooth the grasped object's poses over neighbouring frames once all are tracked
+        (:func:`apo.perception.smoothing.smooth_poses`: local constant-velocity fits on
+        windows of up to 7 frames, the best-fitting window containing the frame, so that
+        jumps and kinks at contacts stay sharp); False: each frame's own registration.
+    refine_environment : bool
+        Refine the environment's pose, once found, by the projective ICP on the mean depth of
+        its pixels over the histogram's frames (:mod:`apo.perception.environment`); False:
+        the closest-point ICP's pose on their median depth, as before session 4.
     projective : bool
         Register frame to frame by projective point-to-plane ICP first
         (:func:`apo.perception.register.register_projective`); the Open3D closest-point ICP
@@ -160,6 +174,8 @@ class TrackOptions:
     surface_tolerance: float = 0.003
     projective: bool = True
     seed: int = 0
+    refine_environment: bool = True
+    smooth: bool = True
 
 
 @dataclass(frozen=True)
@@ -171,7 +187,8 @@ class TrackResult:
     times : ndarray, shape (N,)
         Seconds.
     X_CG : ndarray, shape (N, 4, 4)
-        Grasped object in the camera frame; NaN where ``lost``.
+        Grasped object in the camera frame; NaN where ``lost``; smoothed over neighbouring
+        frames unless ``TrackOptions.smooth`` is False.
     X_CE : ndarray, shape (4, 4)
         Environment object in the camera frame (static: one pose for the whole sequence).
     X_EG : ndarray, shape (N, 4, 4)
@@ -379,8 +396,11 @@ def _prefetch(pool: Executor, src: FrameSource, options: TrackOptions) -> dict[i
 def _environment_points(
     src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame],
     prefetch: dict[int, Future[_Frame]] | None = None,
-) -> tuple[list[FloatArray], npt.NDArray[np.float32]]:  # fmt: skip
-    """Return the static regions' points (median depth of their pixels) and the median depth.
+) -> tuple[list[FloatArray], npt.NDArray[np.float32], npt.NDArray[np.float32]]:  # fmt: skip
+    """Return the static regions' points (median depth of their pixels) and two depths.
+
+    The median of every pixel over at most 9 frames (for the surface check), and the
+    static pixels' surface depth over all the frames (:func:`surface_depth`; 0 elsewhere).
 
     The regions are the largest connected components of the static pixels, largest first
     (:func:`_components`). The frames decoded are kept in ``cache`` for the tracking loop
@@ -411,7 +431,8 @@ def _environment_points(
     few = depths[:: max(1, -(-len(depths) // 9))]
     median_all = masked_median(few, few > 0)
     lab, n = _components(static & (median > 0))
-    return [src.camera.backproject(median, lab == k) for k in range(1, n + 1)], median_all
+    regions = [src.camera.backproject(median, lab == k) for k in range(1, n + 1)]
+    return regions, median_all, surface_depth(depths, median > 0, seg.noise)
 
 
 NO_COLOUR = np.zeros((0, 0, 3), dtype=np.uint8)
@@ -522,7 +543,7 @@ def _open_scene(
 def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     """Register the environment on the median depth of its pixels over many frames."""
     opt, E, cam = scene.opt, scene.E, scene.camera
-    parts, median_depth = _environment_points(
+    parts, median_depth, surface = _environment_points(
         scene.src, scene.seg, opt, scene.cache, scene.prefetch
     )
     parts = [p for p in parts if len(p) >= opt.min_points]
@@ -557,6 +578,8 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     assert env is not None
     if XE0 is None:
         env = _trimmed(env, env_points, scene, median_depth)
+    if opt.refine_environment:
+        env = _refined(env, env_points, scene, median_depth, surface)
     if env.confidence < opt.min_confidence:
         hint = (
             "; give its pose in the camera frame with --init-environment "
@@ -598,6 +621,23 @@ def _trimmed(
     r = evaluate(sub, scene.E, invert_pose(T[0]), inlier_distance=inl, depth=depth,
                  camera=scene.camera, free_space_tolerance=kw["free_space_tolerance"])  # fmt: skip
     return r if r.confidence >= env.confidence else env
+
+
+def _refined(
+    env: Registration, points: FloatArray, scene: _Scene, depth: npt.NDArray[np.float32],
+    surface: npt.NDArray[np.float32],
+) -> Registration:  # fmt: skip
+    """Refine the environment's pose on its surface depth (:func:`refine_environment`).
+
+    Kept when its confidence (on the median depth) is not lower by more than 0.01.
+    """
+    E, cam, n = scene.E, scene.camera, min(len(scene.src), scene.opt.histogram_frames)
+    X = refine_environment(surface, depth, cam, E, env.X_CM, scene.noise, n,
+                           _window(cam, env.X_CM, E, 0.01))  # fmt: skip
+    kw = scene.settings(points)
+    r = evaluate(points, E, X, inlier_distance=kw["inlier_distance"], depth=depth, camera=cam,
+                 free_space_tolerance=kw["free_space_tolerance"])  # fmt: skip
+    return r if r.confidence >= env.confidence - 0.01 else env
 
 
 def _environment_colour(scene: _Scene, frames: int = 5) -> ColourModel:
@@ -897,9 +937,15 @@ def track_frames(
             f"{tracker.conf.max():.2f} < {opt.min_confidence})"
         )
     assert scene.env is not None
-    X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), tracker.X_CG)
+    times = np.asarray(src.times, dtype=np.float64)
+    X_CG = tracker.X_CG
+    if opt.smooth:  # offline: each pose from the frames on both sides
+        X_CG = smooth_poses(
+            times, X_CG, ~tracker.lost, centre=tracker.centre, restart=tracker.reinit
+        )
+    X_EG = np.einsum("ij,njk->nik", invert_pose(scene.X_CE), X_CG)
     return TrackResult(
-        np.asarray(src.times, dtype=np.float64), tracker.X_CG, scene.X_CE, X_EG,
+        times, X_CG, scene.X_CE, X_EG,
         tracker.conf, tracker.lost, scene.env.confidence, src.camera.X_WC,
         tracker.reinit, scene.syms_G, scene.syms_E,
     )  # fmt: skip

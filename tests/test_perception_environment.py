@@ -1,0 +1,77 @@
+"""The environment's pose refined on the unbiased depth of its pixels (apo.perception.environment).
+
+The depth of a static pixel counted only where it passes a foreground test (above the
+support plane by some sigmas) is biased towards the camera; :func:`surface_depth` is not.
+On random variants (not the benchmark's seeds 100-109) the refined environment pose is
+nearer the truth than the closest-point ICP's on the median depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apo.perception.environment import surface_depth
+from apo.perception.frames import masked_median
+from apo.perception.segment import DepthNoiseModel
+from apo.perception.variants import random_variant, render_variant
+from apo.spatial import rotation_angle
+from apo.symmetry import symmetries
+
+
+def test_surface_depth_is_unbiased_where_a_foreground_test_truncates() -> None:
+    # A surface 4 mm above the table at 0.9 m (sigma 2.8 mm), 30 frames; a part passes in
+    # front of it (30 mm nearer) in 8 of them. The median over the frames where the pixel
+    # passes a 2-sigma foreground test is biased by millimetres; surface_depth is not.
+    rng = np.random.default_rng(5)
+    noise = DepthNoiseModel(3.5e-3)
+    z, table, n = 0.9, 0.904, 30
+    sigma = float(noise.sigma(z))
+    D = (z + sigma * rng.standard_normal((n, 40, 50))).astype(np.float32)
+    D[:8, :, :25] -= 0.03  # the passages in front
+    D[rng.random(D.shape) < 0.05] = 0.0  # dropouts
+    fg = (D > 0) & (table - 2 * sigma > D)
+    pixels = np.ones((40, 50), dtype=bool)
+    biased = masked_median(D, fg)[pixels] - z
+    est = surface_depth(D, pixels, noise)[pixels] - z
+    assert np.median(biased) < -1e-3  # the truncated median: over a millimetre nearer
+    assert abs(float(np.mean(est))) < 1e-4  # unbiased over the 2,000 pixels
+    assert float(np.std(est)) < 1.5 * sigma / np.sqrt(n - 8)  # noise averaged
+    assert not surface_depth(D, np.zeros((40, 50), dtype=bool), noise).any()
+
+
+def _environment_error(X: np.ndarray, X_true: np.ndarray, syms: list) -> tuple[float, float]:
+    errs = [
+        (
+            float(np.linalg.norm(X[:3, 3] - (X_true @ s.S)[:3, 3])),
+            float(rotation_angle(X[:3, :3].T @ (X_true @ s.S)[:3, :3])),
+        )
+        for s in syms
+    ]
+    return min(errs, key=lambda e: e[0] + 0.05 * e[1])  # the nearest twin
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [7, 8, 11])
+def test_refined_environment_is_nearer_the_truth(tmp_path: Path, seed: int) -> None:
+    # Variants at 0.65 to 0.99 m, c 3 to 5.6 mm/m^2 (seed 7 without a hand, 8 and 11 with
+    # one); 20 frames. Measured: seed 7 1.35 -> 0.44 mm (120 frames: 1.01 -> 0.13 mm);
+    # at 120 frames seed 8 0.57 -> 0.04 mm, seed 11 1.32 -> 0.17 mm.
+    pytest.importorskip("open3d")
+    from apo.perception.track import TrackOptions, _find_environment, _open_scene
+
+    v = random_variant(seed, n_frames=20)
+    r = render_variant(v, tmp_path / "f")
+    syms = symmetries(*r.environment)
+    err = {}
+    for refine in (False, True):
+        opt = replace(TrackOptions(), refine_environment=refine)
+        scene = _open_scene(r.frames, r.grasped, r.environment, "m", opt)
+        _find_environment(scene, None)
+        err[refine] = _environment_error(scene.X_CE, r.X_CE, syms)
+    before, after = err[False], err[True]
+    assert after[0] < 0.5e-3 and after[1] < np.radians(0.25), (before, after)
+    assert after[0] + 0.05 * after[1] < before[0] + 0.05 * before[1], (before, after)
