@@ -125,3 +125,23 @@ def test_projective_icp_stopped_on_a_limit_cycle_is_where_it_would_end(seed: int
     moved = transform_points(fast.X_CM, V) - transform_points(full.X_CM, V)
     assert np.linalg.norm(moved, axis=1).max() <= STALL * 1e-5  # the default tolerance
     assert fast.iterations <= full.iterations
+
+
+def test_batch_icp_on_every_core_gives_the_same_transforms(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Large k-d tree queries run with ``workers=-1`` (``PARALLEL_QUERY``): identical results."""
+    from apo.perception import search
+
+    rng = np.random.default_rng(5)
+    peg, _ = peg_and_slot()
+    model = ModelCloud(peg)
+    X_true = _pose(rng.normal(0, 1.0, 3), np.array([0.01, -0.02, 0.5]))
+    P = transform_points(X_true, model.dense_points[rng.choice(len(model.dense_points), 400)])
+    starts = np.stack([invert_pose(X_true @ _pose(rng.normal(0, 0.1, 3), rng.normal(0, 0.004, 3)))
+                       for _ in range(40)])  # fmt: skip
+    assert starts.shape[0] * len(P) >= search.PARALLEL_QUERY  # the parallel query is used
+    kw = {"distance": 0.01, "scale": 0.005, "iterations": 8}
+    parallel = search.batch_icp(P, model, starts, **kw)
+    monkeypatch.setattr(search, "PARALLEL_QUERY", 10**12)
+    serial = search.batch_icp(P, model, starts, **kw)
+    np.testing.assert_array_equal(parallel, serial)
+    assert not np.allclose(parallel, starts)  # the ICP moved them
