@@ -145,3 +145,22 @@ def test_batch_icp_on_every_core_gives_the_same_transforms(monkeypatch: pytest.M
     serial = search.batch_icp(P, model, starts, **kw)
     np.testing.assert_array_equal(parallel, serial)
     assert not np.allclose(parallel, starts)  # the ICP moved them
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_nearest_sample_is_the_brute_force_nearest(dense: bool) -> None:
+    """The k-d trees (built with ``compact_nodes=False``) give the exact nearest sample."""
+    rng = np.random.default_rng(11)
+    _, slot = peg_and_slot()
+    model = ModelCloud(slot, seed=3)
+    samples = model.dense_points if dense else model.points
+    base = samples[rng.choice(len(samples), 300)]
+    for spread in (0.0005, 0.004, 0.02):  # near the surface, millimetres off, far
+        P = base + rng.normal(0, spread, base.shape)
+        side, dist, idx = model.nearest_sample(P, dense=dense, max_distance=0.01)
+        d_all = np.linalg.norm(P[:, None, :] - samples[None], axis=2)
+        best = d_all.argmin(axis=1)
+        near = d_all.min(axis=1) <= 0.01
+        np.testing.assert_array_equal(idx[near], best[near])
+        np.testing.assert_allclose(dist[near], d_all.min(axis=1)[near], rtol=0, atol=1e-15)
+        assert np.all(idx[~near] == -1) and np.all(np.isinf(side[~near]))

@@ -38,7 +38,7 @@ def _tree(model: ModelCloud, dense: bool) -> Any:
     name = "_tree" if dense else "_sparse_tree"
     tree = getattr(model, name, None)
     if tree is None:
-        tree = cKDTree(model.dense_points if dense else model.points)
+        tree = cKDTree(model.dense_points if dense else model.points, compact_nodes=False)
         setattr(model, name, tree)
     return tree
 
