@@ -31,7 +31,8 @@ Speed is that of the whole commands a user runs, each in its own process (interp
 start, imports, model files read, outputs written): ``apo track FRAMES`` (whose CSV gives
 the poses measured) and ``apo analyze FRAMES``, wall clock and CPU time (all threads, from
 ``getrusage``: on a shared machine the wall clock mostly measures the other jobs), with the
-1-minute load average. JSON: ``benchmarks/results/perception_variants.json``.
+1-minute load average. JSON: ``benchmarks/results/perception_variants.json``
+(``perception_variants_colour_none.json`` with ``--colour none``: depth alone).
 """
 
 from __future__ import annotations
@@ -187,8 +188,11 @@ def _tracked_poses(csv: Path, times: np.ndarray) -> tuple[np.ndarray, int]:
     return X, int(rows["reinitialised"].sum())
 
 
-def run_variant(seed: int, frames: int) -> dict[str, Any]:
-    """Render one random variant; run ``apo track`` and ``apo analyze FRAMES`` on it."""
+def run_variant(seed: int, frames: int, colour: str = "auto") -> dict[str, Any]:
+    """Render one random variant; run ``apo track`` and ``apo analyze FRAMES`` on it.
+
+    ``colour`` is passed as ``--colour`` to both (``none``: depth alone).
+    """
     import trimesh
 
     from apo.io.taskfile import read_task
@@ -202,7 +206,7 @@ def run_variant(seed: int, frames: int) -> dict[str, Any]:
         g, e = Path(tmp) / "g.stl", Path(tmp) / "e.stl"
         trimesh.Trimesh(*r.grasped).export(g)
         trimesh.Trimesh(*r.environment).export(e)
-        models = ["--grasped", str(g), "--environment", str(e), "--units", "m"]
+        models = ["--grasped", str(g), "--environment", str(e), "--units", "m", "--colour", colour]
         out = Path(tmp) / "poses.csv"
         track_s, track_cpu_s = _command(["track", str(r.frames), *models, "--out", str(out)])
         load = os.getloadavg()[0]
@@ -223,6 +227,7 @@ def run_variant(seed: int, frames: int) -> dict[str, Any]:
     )
     return {
         "seed": seed,
+        "colour": colour,
         "variant": v.__dict__,
         "label": v.label(),
         "median_pos_mm": float(np.median(pos)),
@@ -244,9 +249,12 @@ def run_variant(seed: int, frames: int) -> dict[str, Any]:
     }
 
 
-def main_variants(n: int, first: int, frames: int) -> None:
+def main_variants(n: int, first: int, frames: int, colour: str = "auto") -> None:
     """Benchmark ``n`` random variants (seeds ``first`` ...); print a table, write JSON."""
-    print(f"perception variants: {n} recordings, {frames} frames, {os.cpu_count()} cpus")
+    print(
+        f"perception variants: {n} recordings, {frames} frames, --colour {colour}, "
+        f"{os.cpu_count()} cpus"
+    )
     print(
         f"{'seed':>4} {'med mm':>7} {'p95 mm':>7} {'med deg':>7} {'p95 deg':>7} {'flips':>5} "
         f"{'reinit':>6} {'lost':>4} {'fps':>6} {'track s':>7} {'cpu s':>6} {'analyze s':>9} "
@@ -254,7 +262,7 @@ def main_variants(n: int, first: int, frames: int) -> None:
     )
     rows = []
     for seed in range(first, first + n):
-        r = run_variant(seed, frames)
+        r = run_variant(seed, frames, colour)
         rows.append(r)
         print(
             f"{seed:4d} {r['median_pos_mm']:7.3f} {r['p95_pos_mm']:7.3f} "
@@ -264,9 +272,11 @@ def main_variants(n: int, first: int, frames: int) -> None:
             f"{r['true_task_model']!s:>7} {r['load_average_1min']:5.2f}  {r['label']}",
             flush=True,
         )
-    out = Path(__file__).parent / "results" / "perception_variants.json"
+    name = "perception_variants" + ("" if colour == "auto" else f"_colour_{colour}")
+    out = Path(__file__).parent / "results" / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"frames": frames, "cpus": os.cpu_count(), "machine": platform.platform()}
+    meta = {"frames": frames, "colour": colour, "cpus": os.cpu_count()}
+    meta["machine"] = platform.platform()
     out.write_text(json.dumps({**meta, "rows": rows}, indent=2) + "\n")
     print(f"-> {out}")
 
@@ -280,9 +290,13 @@ def main() -> None:
     ap.add_argument(
         "--repeats", type=int, default=2, help="tracking runs per case; the fastest is reported"
     )
+    ap.add_argument(
+        "--colour", default="auto",
+        help="with --variants: apo's --colour (auto: learnt; none: depth alone)",
+    )  # fmt: skip
     args = ap.parse_args()
     if args.variants:
-        main_variants(args.variants, args.seed, args.frames or 120)
+        main_variants(args.variants, args.seed, args.frames or 120, args.colour)
         return
     args.frames = args.frames or 60
     w, h = (320, 240) if args.quick else (640, 480)

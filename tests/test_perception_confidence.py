@@ -90,3 +90,49 @@ def test_wrong_environment_model_is_an_error_naming_init_environment(tmp_path: P
     block = box_triangles(hi - lo, (hi + lo) / 2 + [0.0, 0.0, 0.03])
     with pytest.raises(TrackingLostError, match="--init-environment"):
         track_frames(tmp_path, peg, block, units="m")
+
+
+def _boxes_view(seed: int, observed: list[tuple[tuple, tuple]]) -> tuple:
+    """A camera 0.5 m in front of boxes (extents, centre), turned at random up to 25 deg.
+
+    Returns the camera, the observed depth (the boxes over a wall at 0.8 m) and the
+    rotation about the scene's centre.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from apo.perception.camera import Camera
+
+    cam = Camera(300.0, 300.0, 159.5, 119.5, 320, 240)
+    R = Rotation.from_rotvec(np.radians(25.0) * np.random.default_rng(seed).uniform(-1, 1, 3))
+    X = np.eye(4)
+    X[:3, :3] = R.as_matrix()
+    X[:3, 3] = [0.0, 0.0, 0.5]
+    depth = np.full((240, 320), 0.8, dtype=np.float32)
+    for extents, centre in observed:
+        V, T = box_triangles(extents, centre)
+        d, _ = rasterize(transform_points(X, V), T, cam)
+        depth = np.where((d > 0) & (d < depth), d, depth).astype(np.float32)
+    return cam, depth, X
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_model_inside_a_larger_box_sharing_its_face_is_not_confident(seed: int) -> None:
+    # Without the colour a part fits into a forearm's box: its front face explained, the
+    # rest hidden by the box in front. The box's face running on past the part's outline
+    # tells the two apart; hidden surface alone does not.
+    part = ((0.03, 0.03, 0.02), (0.01, -0.01, -0.02))  # front face at z = -0.03, as the box's
+    cam, depth, X = _boxes_view(seed, [((0.12, 0.08, 0.06), (0.0, 0.0, 0.0))])
+    V, T = box_triangles(*part)
+    model = ModelCloud((V, T))
+    none = np.zeros_like(depth)
+    s = surface_check(X, model, depth, cam, tolerance=0.003, occluder=none)
+    assert s.explained == 1.0 and s.visible > 0.35  # all it shows is explained...
+    assert s.continued > 0.4 and s.score < 0.9, s  # ...but the box's face runs on past it
+    # The same part held by a finger flush with its front face: depth jumps on most of its
+    # outline (to the wall behind), the finger's face runs on along one side only.
+    finger = ((0.03, 0.012, 0.02), (0.01, -0.01 - 0.021, -0.02))
+    cam, depth, X = _boxes_view(seed, [part, finger])
+    s = surface_check(X, model, depth, cam, tolerance=0.003, occluder=none)
+    assert s.continued < 0.4 and s.score == 1.0, s
+    # Without an occluder (the environment registered alone) there is no outline test.
+    assert surface_check(X, model, depth, cam, tolerance=0.003).continued == 0.0

@@ -90,3 +90,29 @@ def test_tracking_random_variants_without_initial_poses(tmp_path: Path, seed: in
     assert np.nanmedian(best) < 1.0 and np.nanpercentile(best, 95) < 3.0, v.label()
     assert res.reinitialisations <= 2 and not res.lost.any(), v.label()
     assert np.all(res.confidence >= 0.8), v.label()
+
+
+# Depth alone (issue 11: "colour is an optional cue, never required") with a hand and forearm
+# holding the part: the first frame's global search fitted the part into the forearm's box
+# (82 mm off on seed 2, 145 mm on seed 5, confidence 1.0), as the hidden model surface counted
+# neither for nor against. The outline test (the box's faces run on past a model inside it;
+# a held part shows depth jumps at its outline) finds the part.
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 5])
+def test_depth_alone_with_a_hand_finds_the_part_not_the_hand(tmp_path: Path, seed: int) -> None:
+    pytest.importorskip("open3d")
+    from apo.perception.segment import ColourModel
+    from apo.perception.track import TrackOptions, track_frames
+
+    v = random_variant(seed, n_frames=30)
+    assert v.hand
+    r = render_variant(v, tmp_path / "f")
+    opt = TrackOptions(colour=ColourModel.any_colour())
+    res = track_frames(r.frames, r.grasped, r.environment, units="m", options=opt)
+    X_CG = np.linalg.inv(r.X_CE) @ np.asarray(res.X_CE) @ np.asarray(res.X_EG)
+    err = []
+    for k, X in enumerate(X_CG):  # the nearest twin of the truth, frame by frame
+        T = [r.demo.X_EG_true[k] @ s.S for s in symmetries(*r.grasped)]
+        err.append(min(np.linalg.norm(X[:3, 3] - t[:3, 3]) for t in T) * 1e3)
+    assert err[0] < 2.0 and np.median(err) < 1.5, (v.label(), err[:3])
+    assert res.reinitialisations == 0 and not res.lost.any(), v.label()

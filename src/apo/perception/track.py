@@ -48,6 +48,7 @@ from apo.perception.register import (
     evaluate,
     initialise,
     orthonormalised,
+    plausibility,
     register,
     register_projective,
 )
@@ -462,33 +463,45 @@ def _in_gate(points: FloatArray, centre: FloatArray, radius: float) -> BoolArray
     return np.asarray(np.einsum("ij,ij->i", points - centre, points - centre) <= radius * radius)
 
 
-def _object_near_largest(
-    mask: BoolArray, depth: npt.NDArray[np.float32], camera: Camera, reach: float
-) -> FloatArray:
-    """Return the points of the largest component and of the components near it (3-D).
+def _object_groups(
+    mask: BoolArray, depth: npt.NDArray[np.float32], camera: Camera, reach: float,
+    *, limit: int = 3, share: float = 0.25,
+) -> list[FloatArray]:  # fmt: skip
+    """Return the points of the largest components, each with the components near it (3-D).
 
-    The global path has no prediction to gate with: it takes the largest connected
-    component and every other one (of at least 5 % of its size) whose centroid is within
-    ``reach`` (the model's diameter) of its centroid: a hand across the part cuts its image
-    in two, and the largest piece alone is ambiguous.
+    The global path has no prediction to gate with. The first group is the largest
+    connected component and every other one (of at least 5 % of its size) whose centroid is
+    within ``reach`` (the model's diameter) of its centroid: a hand across the part cuts its
+    image in two, and the largest piece alone is ambiguous. The next groups start from the
+    largest components left (at least ``share`` of the largest; at most ``limit`` groups):
+    without the colour, a forearm whose depth jumps away from the hand is the largest
+    component, the hand and the part it holds the second.
     """
     from scipy import ndimage
 
     labels, n = ndimage.label(mask & (depth > 0))
     pts = camera.backproject(depth, labels > 0)
     if n <= 1:
-        return pts
+        return [pts]
     lab = labels[labels > 0]  # the same row-major order as the points
     sizes = np.bincount(lab, minlength=n + 1).astype(np.float64)
+    sizes[0] = 0.0
     centroids = (
         np.stack([np.bincount(lab, weights=pts[:, k], minlength=n + 1) for k in range(3)], axis=1)
         / np.maximum(sizes, 1.0)[:, None]
     )
-    big = int(np.argmax(sizes))
-    near = np.linalg.norm(centroids - centroids[big], axis=1) <= reach
-    keep = near & (sizes >= 0.05 * sizes[big])
-    keep[0] = False
-    return np.asarray(pts[keep[lab]])
+    groups: list[FloatArray] = []
+    left = sizes.copy()
+    while len(groups) < limit:
+        big = int(np.argmax(left))
+        if left[big] <= 0 or (groups and left[big] < share * sizes.max()):
+            break
+        near = np.linalg.norm(centroids - centroids[big], axis=1) <= reach
+        keep = near & (left >= 0.05 * left[big])
+        keep[big] = True
+        left[keep] = 0.0
+        groups.append(np.asarray(pts[keep[lab]]))
+    return groups
 
 
 @dataclass
@@ -701,11 +714,10 @@ class _Tracker:
         c = transform_points(pred, self.centre[None])[0]
         return c, self.G.diameter / 2 + self.margin + speed
 
-    def points(
-        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None,
-        gate: tuple[FloatArray, float] | None = None,
-    ) -> _Observed:  # fmt: skip
-        """Observed points of the grasped object; the depth, camera, environment depth, mask."""
+    def _masked(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None
+    ) -> tuple[npt.NDArray[np.float32], Camera, npt.NDArray[np.float32], BoolArray]:
+        """Return the window's depth, camera, environment depth and the grasped object's pixels."""
         s = self.scene
         env_d, d, c = s.env_depth, depth, s.camera
         if window is not None:
@@ -715,8 +727,26 @@ class _Tracker:
             c = c.crop(u0, v0, w, h)
         env_thr = s.seg.threshold(d, self.opt.environment_threshold, 1)
         mask = grasped_mask(s.seg.objects(rgb, depth, window), d, env_d, threshold=env_thr)
+        return d, c, env_d, mask
+
+    def _subset(self, pts: FloatArray) -> FloatArray:
+        """At most ``max_points`` of the points (random subset)."""
+        if len(pts) > self.opt.max_points:
+            pts = pts[self.rng.choice(len(pts), self.opt.max_points, replace=False)]
+        return pts
+
+    def points(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None,
+        gate: tuple[FloatArray, float] | None = None,
+    ) -> _Observed:  # fmt: skip
+        """Observed points of the grasped object; the depth, camera, environment depth, mask.
+
+        Without a window: the first group of :func:`_object_groups` (the largest component
+        and those near it).
+        """
+        d, c, env_d, mask = self._masked(rgb, depth, window)
         if window is None:
-            pts = _object_near_largest(mask, d, c, self.G.diameter)
+            pts = _object_groups(mask, d, c, self.G.diameter, limit=1)[0]
         else:
             pts = c.backproject(d, mask)  # clutter: removed by the 3-D gate
         if gate is not None:
@@ -724,9 +754,7 @@ class _Tracker:
             pts = pts[inside]
             mask = mask & (d > 0)
             mask[mask] = inside  # backproject's row-major order
-        if len(pts) > self.opt.max_points:
-            pts = pts[self.rng.choice(len(pts), self.opt.max_points, replace=False)]
-        return _Observed(pts, d, c, env_d, mask)
+        return _Observed(self._subset(pts), d, c, env_d, mask)
 
     def good(self, r: Registration) -> bool:
         """Confident, explaining its points and fitting them as closely as the last frames did.
@@ -811,15 +839,26 @@ class _Tracker:
     def reinitialise(
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]
     ) -> Registration | None:
-        """Run the global search on the whole frame's largest component."""
-        pts, d, c, env_d, _ = self.points(rgb, depth, None)
-        if len(pts) < self.opt.min_points:
-            return None
-        return initialise(
-            pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
-            symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
-            **self.scene.settings(pts),
-        )  # fmt: skip
+        """Run the global search on the whole frame's largest groups of components.
+
+        Each group (:func:`_object_groups`: without the colour, a forearm apart from the
+        hand and the part it holds is the largest) is searched; the most plausible result
+        (:func:`apo.perception.register.plausibility`) wins.
+        """
+        d, c, env_d, mask = self._masked(rgb, depth, None)
+        best: Registration | None = None
+        for pts in _object_groups(mask, d, c, self.G.diameter):
+            pts = self._subset(pts)
+            if len(pts) < self.opt.min_points:
+                continue
+            r = initialise(
+                pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
+                symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
+                **self.scene.settings(pts),
+            )  # fmt: skip
+            if best is None or plausibility(r) > plausibility(best):
+                best = r
+        return best
 
     def step(self, i: int, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32]) -> None:
         """Track frame ``i``: from the prediction, else (real loss) by the global search."""
@@ -851,11 +890,17 @@ class _Tracker:
 
 
 def _better(a: Registration, b: Registration | None) -> bool:
-    """More confident; as confident (within 0.02): higher quality, then smaller RMS residual."""
+    """More plausible; as plausible (within 0.02): higher quality, then smaller RMS residual.
+
+    :func:`apo.perception.register.plausibility`: the confidence less the share of the
+    outline the observed surface continues (without the colour, a pose inside the hand's
+    boxes explains as much of its surface as the true one).
+    """
     if b is None:
         return True
-    if abs(a.confidence - b.confidence) > 0.02:
-        return a.confidence > b.confidence
+    pa, pb = plausibility(a)[0], plausibility(b)[0]
+    if abs(pa - pb) > 0.02:
+        return pa > pb
     if abs(a.quality - b.quality) > 0.01:
         return a.quality > b.quality
     return a.rmse < b.rmse
