@@ -22,8 +22,9 @@ apo.errors.InputFormatError: task.json: parameters.standoff: expected a positive
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,10 @@ from apo.spatial import pose_from_position_quaternion, position_quaternion_from_
 from apo.typing import FloatArray
 
 __all__ = [
+    "JSON_TEXT_DEPTH",
+    "JsonItems",
     "JsonReader",
+    "json_chunks",
     "pose_to_dict",
     "rounded",
     "rounded_list",
@@ -202,3 +206,110 @@ class JsonReader:
         if idx < 0:
             raise self.fail(where, f"negative feature index {idx}")
         return (kind, idx)
+
+
+# --------------------------------------------------------------------------------------------
+# Writing: JSON text laid out by depth, in chunks
+# --------------------------------------------------------------------------------------------
+
+#: Containers nested this deep are written on one line by :func:`apo.outputs.json_text`.
+JSON_TEXT_DEPTH = 4
+
+
+class JsonItems:
+    """A JSON array whose items are made while it is written (:func:`json_chunks`).
+
+    ``items()`` returns a fresh iterable of the items each time; ``n`` is their number and
+    ``nested`` says whether they are objects or arrays (laid out one per line) or plain
+    values. A long array (the states of a long task) is then never held whole: only the
+    items of the block being written.
+    """
+
+    def __init__(self, n: int, items: Callable[[], Iterable[Any]], *, nested: bool = True):
+        self.n = n
+        self.items = items
+        self.nested = nested
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(self.items())
+
+
+#: Pieces of text gathered into one chunk by :func:`json_chunks`.
+JSON_CHUNK_PIECES = 2048
+
+
+def json_chunks(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> Iterator[str]:
+    """Yield the text of :func:`json_text` in chunks (joined, the same text).
+
+    ``data`` may hold :class:`JsonItems` arrays, written item by item: the text and the
+    items of a long array are never in memory whole, only one chunk of
+    ``JSON_CHUNK_PIECES`` pieces.
+    """
+    flat = _one_line_encoder()
+    out: list[str] = []
+    nested = (dict, list, tuple, JsonItems)
+
+    def plain(v: Any, level: int) -> bool:
+        if isinstance(v, JsonItems):
+            return level >= depth or not (v.n and v.nested)
+        return (
+            level >= depth
+            or not isinstance(v, nested)
+            or not any(isinstance(x, nested) for x in (v.values() if isinstance(v, dict) else v))
+        )
+
+    def put(v: Any, level: int) -> Iterator[str]:
+        if plain(v, level):
+            out.append(flat(list(v) if isinstance(v, JsonItems) else v))
+            return
+        pad = "\n" + "  " * (level + 1)
+        if isinstance(v, dict):
+            out.append("{")
+            for i, (k, x) in enumerate(v.items()):
+                out.append(("," if i else "") + pad + flat(str(k)) + ": ")
+                yield from put(x, level + 1)
+        else:
+            out.append("[")
+            for i, x in enumerate(v):
+                out.append(("," if i else "") + pad)
+                yield from put(x, level + 1)
+                if len(out) >= JSON_CHUNK_PIECES:
+                    yield "".join(out)
+                    out.clear()
+        out.append("\n" + "  " * level + ("}" if isinstance(v, dict) else "]"))
+
+    yield from put(data, 0)
+    out.append("\n")
+    yield "".join(out)
+
+
+def _one_line_encoder() -> Callable[[Any], str]:
+    """Return ``json.dumps(v, separators=(", ", ": "))`` as a function, made once.
+
+    ``JSONEncoder.encode`` builds a new C encoder at every call (a few microseconds: most
+    of the cost of a short list); this builds it once (``json.encoder.c_make_encoder``, with
+    the arguments ``JSONEncoder.iterencode`` gives it), or falls back to ``encode``.
+    """
+    from json import encoder as std
+
+    enc = json.JSONEncoder(separators=(", ", ": "))
+    make = getattr(std, "c_make_encoder", None)
+    if make is None:
+        return enc.encode
+    try:
+        c = make(
+            None, enc.default, std.encode_basestring_ascii, None, ": ", ", ", False, False, True
+        )
+        if "".join(c([1.5, {"a": None}], 0)) != '[1.5, {"a": null}]':
+            return enc.encode
+    except Exception:  # another Python's private signature
+        return enc.encode
+    esc = std.encode_basestring_ascii
+
+    def one_line(v: Any) -> str:
+        return esc(v) if isinstance(v, str) else "".join(c(v, 0))
+
+    return one_line

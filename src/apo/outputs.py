@@ -40,20 +40,23 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 from apo.errors import OutputError
+from apo.jsonform import JSON_TEXT_DEPTH, JsonItems, json_chunks
 
 __all__ = [
     "MANIFEST",
     "MANIFEST_FORMAT",
+    "JsonItems",
     "OutputSet",
     "atomic_file",
     "check_file_destination",
+    "json_chunks",
     "json_text",
     "output_files",
     "read_manifest",
@@ -510,10 +513,6 @@ class OutputSet:
         self._made = []
 
 
-#: Containers nested this deep are written on one line by :func:`json_text`.
-JSON_TEXT_DEPTH = 4
-
-
 def json_text(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> str:
     """Return ``data`` as JSON text, indented by two spaces, with a final newline.
 
@@ -539,60 +538,4 @@ def json_text(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> str:
       }
     }
     """
-    flat = _one_line_encoder()
-    out: list[str] = []
-    nested = (dict, list, tuple)
-
-    def put(v: Any, level: int) -> None:
-        if (
-            level >= depth
-            or not isinstance(v, nested)
-            or not any(isinstance(x, nested) for x in (v.values() if isinstance(v, dict) else v))
-        ):
-            out.append(flat(v))
-            return
-        pad = "\n" + "  " * (level + 1)
-        if isinstance(v, dict):
-            out.append("{")
-            for i, (k, x) in enumerate(v.items()):
-                out.append(("," if i else "") + pad + flat(str(k)) + ": ")
-                put(x, level + 1)
-        else:
-            out.append("[")
-            for i, x in enumerate(v):
-                out.append(("," if i else "") + pad)
-                put(x, level + 1)
-        out.append("\n" + "  " * level + ("}" if isinstance(v, dict) else "]"))
-
-    put(data, 0)
-    out.append("\n")
-    return "".join(out)
-
-
-def _one_line_encoder() -> Callable[[Any], str]:
-    """Return ``json.dumps(v, separators=(", ", ": "))`` as a function, made once.
-
-    ``JSONEncoder.encode`` builds a new C encoder at every call (a few microseconds: most
-    of the cost of a short list); this builds it once (``json.encoder.c_make_encoder``, with
-    the arguments ``JSONEncoder.iterencode`` gives it), or falls back to ``encode``.
-    """
-    from json import encoder as std
-
-    enc = json.JSONEncoder(separators=(", ", ": "))
-    make = getattr(std, "c_make_encoder", None)
-    if make is None:
-        return enc.encode
-    try:
-        c = make(
-            None, enc.default, std.encode_basestring_ascii, None, ": ", ", ", False, False, True
-        )
-        if "".join(c([1.5, {"a": None}], 0)) != '[1.5, {"a": null}]':
-            return enc.encode
-    except Exception:  # another Python's private signature
-        return enc.encode
-    esc = std.encode_basestring_ascii
-
-    def one_line(v: Any) -> str:
-        return esc(v) if isinstance(v, str) else "".join(c(v, 0))
-
-    return one_line
+    return "".join(json_chunks(data, depth=depth))

@@ -12,7 +12,7 @@ G in the environment frame E (``docs/conventions.md``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, cast
 
@@ -21,7 +21,7 @@ import numpy as np
 from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.jsonform import JsonReader, rounded, rounded_list, rounded_rows
+from apo.jsonform import JsonItems, JsonReader, json_chunks, rounded, rounded_list, rounded_rows
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -50,6 +50,8 @@ __all__ = [
     "state_graph",
     "state_letters",
     "task_from_dict",
+    "task_head",
+    "task_json_chunks",
     "task_to_dict",
 ]
 
@@ -292,25 +294,53 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
     dict
         Plain lists, strings, numbers and booleans, ready for :func:`json.dump`.
     """
+    return _task_dict(task, lazy=False)
+
+
+#: States (and transitions, rejected runs) converted at once by :func:`task_json_chunks`.
+JSON_BLOCK_STATES = 256
+
+
+def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
+    """Yield ``json_text(task_to_dict(task), depth=depth)`` in chunks (joined: the same text).
+
+    The states, transitions and rejected runs are converted ``JSON_BLOCK_STATES`` at a
+    time and written as they are made: the document of a long task (thousands of states)
+    is never held whole, as a dictionary or as text.
+    """
+    return json_chunks(_task_dict(task, lazy=True), depth=depth)
+
+
+def _task_dict(task: TaskModel, *, lazy: bool) -> dict[str, Any]:
+    """:func:`task_to_dict`; ``lazy``: its long arrays as :class:`apo.outputs.JsonItems`."""
     if task.units not in UNITS:
         raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
     k = 1.0 / UNITS[task.units]
-    quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in task.states]))
-    elements = _elements_by_state(task.states, k)
-    states = [
-        _state_to_dict(st, k, q, els)
-        for st, q, els in zip(task.states, quats, elements, strict=True)
-    ]
-    transitions = [_transition_to_dict(t, k) for t in task.transitions]
-    rejected = [
-        {
-            "frames": [int(r.frames[0]), int(r.frames[1])],
-            "elements": list(r.elements),
-            "replaced_by": list(r.replaced_by),
-            "reason": r.reason,
-        }
-        for r in task.rejected
-    ]
+    states = _in_blocks(task.states, lambda b: _states_to_dicts(b, k), lazy)
+    transitions = _in_blocks(
+        task.transitions, lambda b: [_transition_to_dict(t, k) for t in b], lazy
+    )
+    rejected = _in_blocks(task.rejected, lambda b: [_rejected_to_dict(r) for r in b], lazy)
+    head = task_head(task)
+    extra = head.pop("extra", None)
+    return {
+        **head,
+        "states": states,
+        "transitions": transitions,
+        "rejected": rejected,
+        "graph": graph_to_dict(state_graph(task)),
+        **({"extra": extra} if extra is not None else {}),
+    }
+
+
+def task_head(task: TaskModel) -> dict[str, Any]:
+    """Return the top-level fields of :func:`task_to_dict` that do not grow with the task.
+
+    All but ``states``, ``transitions``, ``rejected`` and ``graph``, in the document's order.
+    """
+    if task.units not in UNITS:
+        raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
+    k = 1.0 / UNITS[task.units]
     return {
         "schema": SCHEMA,
         "units": task.units,
@@ -322,11 +352,40 @@ def task_to_dict(task: TaskModel) -> dict[str, Any]:
             "grasped": model_to_dict(task.grasped),
             "environment": model_to_dict(task.environment),
         },
-        "states": states,
-        "transitions": transitions,
-        "rejected": rejected,
-        "graph": graph_to_dict(state_graph(task)),
         **({"extra": dict(task.extra)} if task.extra else {}),
+    }
+
+
+def _in_blocks(items: Sequence[Any], convert: Any, lazy: bool) -> Any:
+    """``convert(items)`` (a list), or with ``lazy`` a :class:`JsonItems` converting blocks."""
+    if not lazy:
+        return convert(items)
+
+    def each() -> Iterator[Any]:
+        for a in range(0, len(items), JSON_BLOCK_STATES):
+            yield from convert(items[a : a + JSON_BLOCK_STATES])
+
+    return JsonItems(len(items), each)
+
+
+def _states_to_dicts(states: Sequence[State], k: float) -> list[dict[str, Any]]:
+    """JSON forms of ``states`` (lengths times ``k``), their rotations converted at once."""
+    if not states:
+        return []
+    quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in states]))
+    elements = _elements_by_state(states, k)
+    return [
+        _state_to_dict(st, k, q, els) for st, q, els in zip(states, quats, elements, strict=True)
+    ]
+
+
+def _rejected_to_dict(r: Rejected) -> dict[str, Any]:
+    """JSON form of a rejected run."""
+    return {
+        "frames": [int(r.frames[0]), int(r.frames[1])],
+        "elements": list(r.elements),
+        "replaced_by": list(r.replaced_by),
+        "reason": r.reason,
     }
 
 

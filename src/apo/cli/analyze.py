@@ -6,6 +6,8 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,6 +17,7 @@ from apo.outputs import OutputSet
 from apo.outputs import atomic_file as atomic_path
 from apo.report.writer import (
     PlotWorker,
+    TaskJson,
     frames_csv,
     model_ref,
     report_maker,
@@ -164,11 +167,25 @@ def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None
     print_written(written)
 
 
-def print_result(rec: Recognition, *, as_json: bool, task_text: str | None = None) -> None:
-    """Print the Fig. 25-style table and a summary, or ``task.json`` (``task_text`` if given)."""
-    if as_json:
-        from apo.report.writer import task_document
+def print_result(
+    rec: Recognition,
+    task_json: TaskJson | None = None,
+    *,
+    as_json: bool,
+    task_text: str | None = None,
+) -> None:
+    """Print the Fig. 25-style table and a summary, or ``task.json``.
 
+    With ``as_json``: the written ``task_json`` (copied a chunk at a time), else
+    ``task_text`` if given, else the task serialised here.
+    """
+    if as_json:
+        if task_json is not None:
+            sys.stdout.flush()
+            for chunk in task_json.text_chunks():
+                sys.stdout.write(chunk)
+            sys.stdout.flush()
+            return
         text = task_text if task_text is not None else task_document(rec)[1]
         print(text, end="", flush=True)
         return
@@ -277,6 +294,8 @@ def _run(
                 demo, units=args.units, grasped=args.grasped, environment=args.environment
             )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
+        if getattr(dem, "X_C", None) is not None:  # the camera poses: not needed any more
+            dem = replace(dem, X_C=None, tags=None)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
 
@@ -302,8 +321,6 @@ def _run(
         )
     finally:
         close()
-    task = task_document(rec)
-    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
     return write_recognition(
         outs,
         rec,
@@ -311,5 +328,5 @@ def _run(
         title=f"DOF indices: {demo.name}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
-        task=task,
+        on_task=partial(print_result, rec, as_json=args.json),  # before the plot is waited for
     )

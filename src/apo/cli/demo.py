@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,7 +30,6 @@ from apo.report.writer import (
     PlotWorker,
     model_ref_as,
     report_maker,
-    task_document,
     write_recognition,
 )
 
@@ -307,8 +307,6 @@ def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -
         source=dem.source,
         floor_share=TRACKED_FLOOR_SHARE if tracked else None,
     )
-    task = task_document(rec)
-    print_result(rec, as_json=args.json, task_text=task[1])  # before the plot is waited for
     return write_recognition(
         outs,
         rec,
@@ -316,5 +314,5 @@ def _run(args: argparse.Namespace, outs: OutputSet, worker: PlotWorker | None) -
         title=f"DOF indices: {dem.source}",
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, []),
-        task=task,
+        on_task=partial(print_result, rec, as_json=args.json),  # before the plot is waited for
     )

@@ -272,7 +272,10 @@ def read_pose_list(
     if parsed is None:  # something is wrong: the line-by-line reader names it
         parsed = _scene_poses(lines, scenes, len(models), scale, lambda j: _where(path, j))
     tags, x_c = parsed
-    x_eg = np.einsum("nij,njk->nik", _invert_all(x_c[:, 1]), x_c[:, 0])
+    x_eg = np.empty((n, 4, 4))
+    for a in range(0, n, POSE_BLOCK):  # inv(X_CE) @ X_CG, a block at a time
+        b = min(n, a + POSE_BLOCK)
+        x_eg[a:b] = np.einsum("nij,njk->nik", _invert_all(x_c[a:b, 1]), x_c[a:b, 0])
     rate = 1.0 if fps is None else float(fps)
     return Demonstration(
         times=np.arange(n, dtype=np.float64) / rate,
@@ -405,21 +408,37 @@ def _scene_poses_fast(
     tags = table[:, 0]
     if not all(r.split(None, 1)[0].lstrip("+-").isdigit() for r in rows):
         return None
+    x = np.zeros((len(table), 4, 4))
+    for a in range(0, len(table), POSE_BLOCK):  # working arrays of one block
+        if not _axis_angle_poses(table[a : a + POSE_BLOCK], scale, x[a : a + POSE_BLOCK]):
+            return None
+    n = len(scenes)
+    return tags.astype(np.int64).reshape(n, n_models), x.reshape(n, n_models, 4, 4)
+
+
+#: Pose lines converted to matrices at once (the working arrays of one block).
+POSE_BLOCK = 4096
+
+
+def _axis_angle_poses(table: FloatArray, scale: float, x: FloatArray) -> bool:
+    """Fill ``x`` (n, 4, 4) with the poses of rows ``tag x y z ax ay az angle``.
+
+    Rodrigues' formula, vectorised; False (``x`` partly filled) where an axis is zero and
+    its angle is not.
+    """
     axis, angle = table[:, 4:7], table[:, 7]
     norm = np.linalg.norm(axis, axis=1)
     if np.any((norm < 1e-12) & (np.abs(angle) > 1e-12)):
-        return None
+        return False
     k = axis / np.where(norm < 1e-12, 1.0, norm)[:, None]
     K = np.zeros((len(k), 3, 3))
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
     K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
     s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    x = np.zeros((len(k), 4, 4))
     x[:, :3, :3] = np.eye(3) + s * K + (1.0 - c) * (K @ K)
     x[:, :3, 3] = table[:, 1:4] * scale
     x[:, 3, 3] = 1.0
-    n = len(scenes)
-    return tags.astype(np.int64).reshape(n, n_models), x.reshape(n, n_models, 4, 4)
+    return True
 
 
 def _pose_line(line: str, where: str, scale: float) -> tuple[int, FloatArray]:

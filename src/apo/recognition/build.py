@@ -210,16 +210,16 @@ def build_states(
         X_s, frame, converged = _state_pose(a, b, k, observed, corrected, cand)
         if k not in placed:
             placed[k] = _Placed(cand)
-        dof_r = cand.dof
+        pk = placed[k]
         states.append(
             State(
                 id=sid,
                 frames=(a, b),
                 times=(float(times[a]), float(times[b])),
-                singular=bool(dof_r.singular),
-                fig25=cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25)),
-                six={sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")},
-                elements=placed[k].at(X_s),
+                singular=pk.singular,
+                fig25=pk.fig25,
+                six=pk.six,
+                elements=pk.at(X_s),
                 X_EG=np.asarray(X_s, dtype=np.float64).copy(),
                 pose_frame=frame,
                 pose_converged=converged,
@@ -238,13 +238,19 @@ class _Placed:
     a sliding state the two lie far apart (a block slid 70 mm along a wall). A point on a
     vertex or edge of the grasped object (kinds VF, VE, VV, EE) moves with it; a point on a
     vertex of the environment (FV, EV) stays. So ``task.json``'s points hold at its poses.
-    A demonstration repeated has thousands of runs of a few candidates: the records (and
-    the inverse of the representative pose) are made once per candidate, not per run.
+    A demonstration repeated has thousands of runs of a few candidates: the records, the
+    DOF numbers (``fig25``, ``six``: the same objects in every run's state) and the inverse
+    of the representative pose are made once per candidate, not per run.
     """
 
     def __init__(self, cand: CandidateState) -> None:
         self.inv = invert_pose(cand.X_EG)
         self.records = [element_record(e) for e in cand.state.elements]
+        # the DOF numbers, one object shared by every run of the candidate
+        dof_r = cand.dof
+        self.singular = bool(dof_r.singular)
+        self.fig25 = cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25))
+        self.six = {sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")}
 
     def at(self, X_s: FloatArray) -> tuple[Element, ...]:
         """Return the elements with their points where they are at the pose ``X_s``."""

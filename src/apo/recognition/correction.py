@@ -96,7 +96,8 @@ def correct_by_label(
     Frames of one state whose observed poses are equal bit for bit are corrected once (the
     correction of each frame is a function of its pose and the elements alone: the batch
     iterates every frame on its own), as the contact search does
-    (:func:`apo.recognition.contacts.distinct_poses`).
+    (:func:`apo.recognition.contacts.distinct_poses`), among ``DEDUPE_FRAMES`` frames at a
+    time (a repeat further on is corrected again, to the same pose).
     """
     n = X.shape[0]
     Xc = X.copy()
@@ -104,21 +105,28 @@ def correct_by_label(
     after = np.zeros(n)
     conv = np.ones(n, dtype=bool)
     for k in np.unique(labels):
-        frames = np.flatnonzero(labels == k)
         elements = states[int(k)].elements
         if not elements:
             continue
-        first, inverse = distinct_poses(X[frames])
-        Xk, b, a, c = _correct_in_blocks(
-            grasped, environment, X[frames[first]], elements, threshold
-        )
-        Xc[frames], before[frames], after[frames], conv[frames] = (
-            Xk[inverse],
-            b[inverse],
-            a[inverse],
-            c[inverse],
-        )
+        of_k = np.flatnonzero(labels == k)
+        for start in range(0, len(of_k), DEDUPE_FRAMES):
+            frames = of_k[start : start + DEDUPE_FRAMES]
+            first, inverse = distinct_poses(X[frames])
+            Xk, b, a, c = _correct_in_blocks(
+                grasped, environment, X[frames[first]], elements, threshold
+            )
+            Xc[frames], before[frames], after[frames], conv[frames] = (
+                Xk[inverse],
+                b[inverse],
+                a[inverse],
+                c[inverse],
+            )
     return Xc, before, after, conv
+
+
+#: Frames of one state searched for exact repeats at a time (:func:`correct_by_label`): the
+#: working memory of the search is of this many frames, whatever the demonstration's length.
+DEDUPE_FRAMES = 2048
 
 
 #: Poses corrected in one batch at most: the batch's working arrays (Jacobians, SVDs) are

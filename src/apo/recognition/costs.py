@@ -18,7 +18,46 @@ from apo.recognition.types import (
     StateKey,
 )
 
-__all__ = ["candidate_costs", "emission_costs", "enclosed_frames"]
+__all__ = ["EmissionLayout", "candidate_costs", "emission_costs", "enclosed_frames"]
+
+
+class EmissionLayout:
+    """What :func:`emission_costs` needs of the candidates, whatever the frames.
+
+    The element keys of every candidate (sorted), which elements each candidate claims
+    (``member``, (U, K)) and which it covers (its own, and those whose feature pair touches
+    in it: ``cover``), and the free candidates. Made once per segmentation pass, not per
+    block of frames.
+    """
+
+    def __init__(
+        self,
+        keys: Sequence[StateKey],
+        touching: Sequence[frozenset[tuple[tuple[str, int], tuple[str, int]]]],
+    ) -> None:
+        self.keys = keys
+        self.ukeys = sorted({e for key in keys for e in key})
+        self.free = [k for k, key in enumerate(keys) if not key]
+        upos = {e: u for u, e in enumerate(self.ukeys)}
+        self.cols = cols = [[upos[e] for e in key] for key in keys]
+        self.member = np.zeros((len(self.ukeys), len(keys)))
+        for k, c in enumerate(cols):
+            self.member[c, k] = 1.0
+        # the claimed elements of the candidates with some, one after another
+        self.claiming = np.array([k for k, c in enumerate(cols) if c], dtype=np.int64)
+        self.claimed = np.array([u for c in cols for u in c], dtype=np.int64)
+        self.starts = np.cumsum([0, *[len(c) for c in cols if c][:-1]]).astype(np.int64)
+        # Observed elements the candidate leaves out: evidence against it. An element whose
+        # feature pair touches in the candidate (e.g. a vertex on an edge when the vertex
+        # touches the edge's end vertex) is not left out.
+        cover = self.member.copy()
+        by_pair: dict[tuple[tuple[str, int], tuple[str, int]], list[int]] = {}
+        for u, (_kind, gf, ef) in enumerate(self.ukeys):
+            by_pair.setdefault((gf, ef), []).append(u)
+        for k, pairs in enumerate(touching):
+            rows = [u for pair in pairs for u in by_pair.get(pair, ())]
+            cover[rows, k] = 1.0
+        self.uncovered = 1.0 - cover
 
 
 def emission_costs(
@@ -28,45 +67,32 @@ def emission_costs(
     obs: IntArray,
     w: SegmentationCosts,
     enclosed: BoolArray | None = None,
+    layout: EmissionLayout | None = None,
 ) -> FloatArray:
     """Cost of every candidate at every frame (``docs/recognition.md``), shape (N, K).
 
     ``enclosed`` (N,): the frames of :func:`enclosed_frames`, where the free state costs
-    ``w.enclosed`` more.
+    ``w.enclosed`` more. ``layout``: ``EmissionLayout(keys, touching)`` if the caller has it
+    (the same for every block of frames).
     """
+    lay = EmissionLayout(keys, touching) if layout is None else layout
     n = len(obs)
-    ukeys = sorted({e for key in keys for e in key})
     emission = np.zeros((n, len(keys)))
     if enclosed is not None and w.enclosed:
-        free = [k for k, key in enumerate(keys) if not key]
-        emission[:, free] += w.enclosed * enclosed[:, None]
-    if not ukeys:
+        emission[:, lay.free] += w.enclosed * enclosed[:, None]
+    if not lay.ukeys:
         return emission
-    upos = {e: u for u, e in enumerate(ukeys)}
-    dist = dists.get(ukeys)
+    dist = dists.get(lay.ukeys)
     # Claimed elements: the correction residual before correction, max_i |f_i| (paper
     # 4.3.1), of the candidate's elements at the observed pose.
     d2 = dist**2
-    member = np.zeros((len(ukeys), len(keys)))
-    for k, key in enumerate(keys):
-        cols = [upos[e] for e in key]
-        member[cols, k] = 1.0
+    for k, cols in enumerate(lay.cols):
         if cols:
             emission[:, k] = w.claim * d2[:, cols].max(axis=1)
-    # Observed elements the candidate leaves out: evidence against it. An element whose
-    # feature pair touches in the candidate (e.g. a vertex on an edge when the vertex
-    # touches the edge's end vertex) is not left out.
-    cover = member.copy()
-    by_pair: dict[tuple[tuple[str, int], tuple[str, int]], list[int]] = {}
-    for u, (_kind, gf, ef) in enumerate(ukeys):
-        by_pair.setdefault((gf, ef), []).append(u)
-    for k, pairs in enumerate(touching):
-        rows = [u for pair in pairs for u in by_pair.get(pair, ())]
-        cover[rows, k] = 1.0
     k_obs = int(obs.max()) + 1
-    seen = member[:, :k_obs][:, obs].T  # (n, U): element observed at frame t
+    seen = lay.member[:, :k_obs][:, obs].T  # (n, U): element observed at frame t
     missed = w.miss * seen * np.clip(1.0 - dist, 0.0, 1.0) ** 2
-    emission += missed @ (1.0 - cover)
+    emission += missed @ lay.uncovered
     return emission
 
 
@@ -95,6 +121,7 @@ def candidate_costs(
     w: SegmentationCosts,
     start: int = 0,
     enclosed: BoolArray | None = None,
+    layout: EmissionLayout | None = None,
 ) -> FloatArray:
     """Cost of every analysed candidate at every frame, shape (N, K).
 
@@ -104,8 +131,10 @@ def candidate_costs(
     converged at no frame costs ``fail`` more per frame; one not analysed is excluded.
     ``dists``, ``obs`` and ``enclosed`` may be a block of frames starting at frame
     ``start`` (the bridges' boundary frames are frame numbers of the whole sequence).
+    ``layout``: the :class:`EmissionLayout` of ``keys`` and the states' touching pairs.
     """
-    emission = emission_costs(dists, keys, [s.touching for s in states], obs, w, enclosed)
+    touching = [s.touching for s in states]
+    emission = emission_costs(dists, keys, touching, obs, w, enclosed, layout)
     k_obs = len(keys) - len(bridges)
     for b, (_cand, (f1, f2), (k1, k2)) in enumerate(bridges, start=k_obs):
         for f, k in ((f1 - start, k1), (f2 - start, k2)):

@@ -69,7 +69,7 @@ def viterbi_uniform(emission: FloatArray, switch: float) -> IntArray:
 
 #: Frames per block of the block-wise stages (costs, decoding, ``frames.csv``): their
 #: working arrays are ``BLOCK_FRAMES x states`` whatever the length of the demonstration.
-BLOCK_FRAMES = 4096
+BLOCK_FRAMES = 1024
 
 
 def _small_int(k: int) -> type[np.signedinteger]:

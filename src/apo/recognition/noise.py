@@ -94,14 +94,27 @@ def _rotvecs(R: FloatArray) -> FloatArray:
     return out
 
 
-def _second_differences(grasped: Polyhedron, X: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Second differences (n-2, 3) of G's centroid and of its rotation vector increments."""
+def _second_differences(
+    grasped: Polyhedron, X: FloatArray, block: int | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """Second differences (n-2, 3) of G's centroid and of its rotation vector increments.
+
+    Computed ``block`` frames at a time (default ``NOISE_BLOCK``): the same values as over
+    every frame at once, in working memory of one block.
+    """
     cg = grasped.vertices.mean(axis=0)
-    c = np.einsum("nij,j->ni", X[:, :3, :3], cg) + X[:, :3, 3]
-    dc = c[2:] - 2.0 * c[1:-1] + c[:-2]
-    R = X[:, :3, :3]
-    inc = _rotvecs(np.einsum("nij,nkj->nik", R[1:], R[:-1]))  # R_{t+1} R_t^T
-    return dc, inc[1:] - inc[:-1]
+    n = len(X)
+    dc, dr = np.empty((max(n - 2, 0), 3)), np.empty((max(n - 2, 0), 3))
+    size = max(1, NOISE_BLOCK if block is None else block)
+    for a in range(0, n - 2, size):
+        b = min(n - 2, a + size)
+        Xb = X[a : b + 2]
+        c = np.einsum("nij,j->ni", Xb[:, :3, :3], cg) + Xb[:, :3, 3]
+        dc[a:b] = c[2:] - 2.0 * c[1:-1] + c[:-2]
+        R = Xb[:, :3, :3]
+        inc = _rotvecs(np.einsum("nij,nkj->nik", R[1:], R[:-1]))  # R_{t+1} R_t^T
+        dr[a:b] = inc[1:] - inc[:-1]
+    return dc, dr
 
 
 def _robust_sigma(d: FloatArray) -> float:
@@ -160,35 +173,79 @@ def outlier_frames(
     sigma_c = math.hypot(noise.position, r_c * noise.rotation)  # a corner, per axis
     lim = max(OUTLIER_FACTOR * math.sqrt(2.0) * sigma_c, floor)
     lim_x = max(OUTLIER_FACTOR * math.sqrt(6.0) * sigma_c, floor)
-    # the corners at every pose, once: (N, 8, 3)
-    pts = np.einsum("nij,cj->nci", X[:, :3, :3], corners) + X[:, None, :3, 3]
-
-    def apart(p: FloatArray, q: FloatArray) -> FloatArray:
-        """Largest corner distance between the corner sets ``p`` and ``q``, per frame."""
-        d: FloatArray = np.linalg.norm(p - q, axis=-1).max(axis=-1)
-        return d
-
-    mid_d = apart(pts[1:-1], 0.5 * (pts[:-2] + pts[2:]))
-    far = (apart(pts[1:-1], pts[:-2]) > lim) & (apart(pts[1:-1], pts[2:]) > lim) & (mid_d > lim)
-    out[1:-1] = far & (apart(pts[2:], pts[:-2]) < mid_d)
+    mid_d, far, closer, left, right = _corner_tests(X, corners, lim)
+    out[1:-1] = far & closer
     if n >= 5:
         # A fast motion (few frames per second) moves G between the two neighbours by as
         # much as an outlier: a frame far from both one-sided extrapolations (2 X[t-1] -
         # X[t-2], 2 X[t+1] - X[t+2]) is an outlier too, unless a frame it extrapolates from
         # is one (a kink of the motion lies on one side's line)
-        left = apart(pts[2:-2], 2.0 * pts[1:-3] - pts[:-4])
-        right = apart(pts[2:-2], 2.0 * pts[3:-1] - pts[4:])
         near = np.convolve(out.astype(np.float64), np.ones(5), mode="valid") > 0  # t-2..t+2
         out[2:-2] |= far[1:-1] & (left > lim_x) & (right > lim_x) & ~near
         # The first and last frames: far from the next (previous) frame and from the
         # extrapolation of the two after (before) it, where those three frames agree
+        ends = np.concatenate([np.arange(4), np.arange(n - 4, n)])
+        pts = dict(zip(ends.tolist(), _corners_at(X[ends], corners), strict=True))
         for end, a, b, c in ((0, 1, 2, 3), (n - 1, n - 2, n - 3, n - 4)):
-            ext = apart(pts[end], 2.0 * pts[a] - pts[b])
-            clean = apart(pts[a], 2.0 * pts[b] - pts[c]) <= lim and not (out[a] or out[b])
-            out[end] = apart(pts[end], pts[a]) > lim and ext > lim_x and clean
+            ext = _apart(pts[end], 2.0 * pts[a] - pts[b])
+            clean = _apart(pts[a], 2.0 * pts[b] - pts[c]) <= lim and not (out[a] or out[b])
+            out[end] = _apart(pts[end], pts[a]) > lim and ext > lim_x and clean
     for t in np.flatnonzero(out[1:-2] & out[2:-1]) + 1:  # two in a row: an outlier's neighbour
         out[t + int(mid_d[t - 1] > mid_d[t])] = False  # is off its own neighbours' midpoint too
     return out
+
+
+#: Frames whose corner positions are computed at once (:func:`outlier_frames`,
+#: :func:`estimate_noise`): their working arrays are of this many frames.
+NOISE_BLOCK = 1024
+
+
+def _corners_at(X: FloatArray, corners: FloatArray) -> FloatArray:
+    """Return the corners (8, 3) of G's box at the poses ``X``: shape (n, 8, 3)."""
+    pts: FloatArray = np.einsum("nij,cj->nci", X[:, :3, :3], corners) + X[:, None, :3, 3]
+    return pts
+
+
+def _apart(p: FloatArray, q: FloatArray) -> FloatArray:
+    """Largest corner distance between the corner sets ``p`` and ``q``, per frame."""
+    d: FloatArray = np.linalg.norm(p - q, axis=-1).max(axis=-1)
+    return d
+
+
+def _corner_tests(
+    X: FloatArray, corners: FloatArray, lim: float, block: int | None = None
+) -> tuple[FloatArray, BoolArray, BoolArray, FloatArray, FloatArray]:
+    """Return the corner distances of :func:`outlier_frames`, ``block`` frames at a time.
+
+    For the inner frames ``t = 1 .. n-2``: the distance from the neighbours' midpoint
+    ``mid_d``, whether ``t`` is far from both neighbours and the midpoint, whether the two
+    neighbours are closer to each other than ``t`` to their midpoint; for ``t = 2 .. n-3``
+    the distances from the left and right extrapolations. The same values as over every
+    frame at once (each is a function of frames ``t-2 .. t+2``).
+    """
+    n = len(X)
+    size = max(1, NOISE_BLOCK if block is None else block)
+    mid_d, far, closer = np.empty(n - 2), np.empty(n - 2, dtype=bool), np.empty(n - 2, dtype=bool)
+    left, right = np.empty(max(n - 4, 0)), np.empty(max(n - 4, 0))
+    for a in range(1, n - 1, size):
+        b = min(n - 1, a + size)
+        lo = max(0, a - 2)
+        pts = _corners_at(X[lo : min(n, b + 2)], corners)
+
+        def at(t0: int, t1: int, pts: FloatArray = pts, lo: int = lo) -> FloatArray:
+            return pts[t0 - lo : t1 - lo]
+
+        prev, here, nxt = at(a - 1, b - 1), at(a, b), at(a + 1, b + 1)
+        md = _apart(here, 0.5 * (prev + nxt))
+        mid_d[a - 1 : b - 1] = md
+        far[a - 1 : b - 1] = (_apart(here, prev) > lim) & (_apart(here, nxt) > lim) & (md > lim)
+        closer[a - 1 : b - 1] = _apart(nxt, prev) < md
+        a2, b2 = max(a, 2), min(b, n - 2)
+        if b2 > a2:
+            mid = at(a2, b2)
+            left[a2 - 2 : b2 - 2] = _apart(mid, 2.0 * at(a2 - 1, b2 - 1) - at(a2 - 2, b2 - 2))
+            right[a2 - 2 : b2 - 2] = _apart(mid, 2.0 * at(a2 + 1, b2 + 1) - at(a2 + 2, b2 + 2))
+    return mid_d, far, closer, left, right
 
 
 def contact_noise(

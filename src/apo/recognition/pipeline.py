@@ -46,6 +46,7 @@ from apo.recognition.noise import (
 )
 from apo.recognition.segmentation import Segmentation, first_pass, segment
 from apo.recognition.types import (
+    BoolArray,
     FloatArray,
     IntArray,
     Progress,
@@ -409,5 +410,16 @@ def _result(
         cost_columns=seg.columns,
         timings=tm,
         X_observed=X,
-        X_corrected=np.where(conv[:, None, None], Xc, X),
+        X_corrected=_observed_where_failed(Xc, X, conv),
     )
+
+
+def _observed_where_failed(Xc: FloatArray, X: FloatArray, conv: BoolArray) -> FloatArray:
+    """Return the corrected poses, observed where the correction failed (``Xc`` updated).
+
+    In place: the corrections that failed are used nowhere else, and a second per-frame
+    array of poses is not made.
+    """
+    failed = np.flatnonzero(~conv)
+    Xc[failed] = X[failed]
+    return Xc

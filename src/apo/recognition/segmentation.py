@@ -22,7 +22,12 @@ import numpy as np
 from apo.recognition.analysis import Analysis
 from apo.recognition.candidates import canonical_ids
 from apo.recognition.contacts import Observations
-from apo.recognition.costs import candidate_costs, emission_costs, enclosed_frames
+from apo.recognition.costs import (
+    EmissionLayout,
+    candidate_costs,
+    emission_costs,
+    enclosed_frames,
+)
 from apo.recognition.decoding import BLOCK_FRAMES, UniformViterbi, Viterbi
 from apo.recognition.distances import DistanceCache, element_distances
 from apo.recognition.types import (
@@ -89,11 +94,16 @@ def _fill(whole: DistanceCache, keys: list[ElementKey]) -> None:
     """
     G, E, X = whole.args
     out = np.empty((len(X), len(keys)))
-    for a, b in frame_blocks(len(X)):
+    for a, b in frame_blocks(len(X), DISTANCE_BLOCKS * BLOCK_FRAMES):
         out[a:b] = element_distances(G, E, X[a:b], keys)
         out[a:b] /= whole.theta
     for j, k in enumerate(keys):
         whole.cache[k] = out[:, j]
+
+
+#: The distances are computed ``DISTANCE_BLOCKS`` cost blocks at a time: a few numpy calls
+#: per element and block, whatever its size.
+DISTANCE_BLOCKS = 4
 
 
 def first_pass(
@@ -111,9 +121,11 @@ def first_pass(
     dec = UniformViterbi(len(observed.keys), w.switch)
     own = np.empty(scene.n)
     enc = enclosed_frames(observed.keys, labels, scene.outliers)
+    lay = EmissionLayout(observed.keys, touching)
     for a, b in frame_blocks(scene.n, block):
         lab = labels[a:b]
-        e = emission_costs(BlockDistances(dists, a, b), observed.keys, touching, lab, w, enc[a:b])
+        bd = BlockDistances(dists, a, b)
+        e = emission_costs(bd, observed.keys, touching, lab, w, enc[a:b], lay)
         own[a:b] = e[np.arange(b - a), lab]
         dec.feed(np.where(scene.outliers[a:b, None], 0.0, e))
     return dec.path()[0], own
@@ -162,10 +174,11 @@ def segment(
     costs = np.empty((scene.n, len(columns)))
     labels = observed.labels
     enc = enclosed_frames(observed.keys, labels, scene.outliers)
+    lay = EmissionLayout(an.keys, [s.touching for s in states])
     for a, b in frame_blocks(scene.n, block):
         e = candidate_costs(
             BlockDistances(dists, a, b), an.keys, states, an.candidates, an.bridges,
-            labels[a:b], w, start=a, enclosed=enc[a:b],
+            labels[a:b], w, start=a, enclosed=enc[a:b], layout=lay,
         )[:, columns]  # fmt: skip
         e = np.where(scene.outliers[a:b, None] & np.isfinite(e), 0.0, e)
         costs[a:b] = e

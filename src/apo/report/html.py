@@ -28,7 +28,7 @@ from __future__ import annotations
 import base64
 import functools
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -279,6 +279,7 @@ def report_data(
     tracks: Sequence[MotionTrack] = (),
     inputs: Mapping[str, Any] | None = None,
     notes: Sequence[str] = (),
+    state_ids: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Return the JSON document the viewer draws (schema ``"apo.report/1"``).
 
@@ -297,6 +298,9 @@ def report_data(
         Shown in the inputs panel (files with hashes, apo version, ...).
     notes : sequence of str
         Warnings shown at the top of the page (a model not found, a hash mismatch).
+    state_ids : sequence of str, optional
+        The task's state ids, for a ``task`` dictionary without its ``states`` (the
+        top-level fields of a task whose text is spliced in by :func:`write_report`).
     """
     from apo import __version__
     from apo.task import UNITS, task_to_dict
@@ -304,7 +308,7 @@ def report_data(
     doc = dict(task) if isinstance(task, Mapping) else task_to_dict(task)
     units = str(doc["units"])
     scale = 1.0 / UNITS[units]
-    ids = [str(s["id"]) for s in doc["states"]]
+    ids = [str(s["id"]) for s in doc["states"]] if state_ids is None else list(state_ids)
     if frames is None:
         frames = frames_from_task_dict(doc)
     return {
@@ -390,45 +394,72 @@ def _json_for_script(data: Mapping[str, Any], task_json: str | None = None) -> b
     With ``task_json`` (the text of ``task.json``, the same document as ``data["task"]``),
     that text is spliced in as ``"task"`` instead of serialising the task a second time.
     """
+    return b"".join(_script_pieces(data, task_json))
+
+
+def _script_pieces(data: Mapping[str, Any], task_json: Any = None) -> Iterator[bytes]:
+    """:func:`_json_for_script` in pieces; ``task_json`` may also be a written task file.
+
+    A written file (:class:`apo.report.writer.TaskJson`: ``stripped_chunks()``) is spliced
+    chunk by chunk: a long task's text is never in memory whole. The escapes replace single
+    ASCII characters, so escaping chunk by chunk gives the same bytes.
+    """
     if task_json is None:
         text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+        yield _escape_script(text.encode("utf-8"))
+        return
+    rest = json.dumps(
+        {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
+    )
+    yield _escape_script((rest[:-1] + ',"task":').encode("utf-8"))
+    if isinstance(task_json, str):
+        yield _escape_script(task_json.strip().encode("utf-8"))
     else:
-        rest = json.dumps(
-            {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
-        )
-        text = rest[:-1] + ',"task":' + task_json.strip() + "}"
-    text = text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
-    return text.encode("utf-8")
+        for chunk in task_json.stripped_chunks():
+            yield _escape_script(chunk)
+    yield b"}"
+
+
+def _escape_script(b: bytes) -> bytes:
+    """Escape ``<``, ``>`` and ``&`` of UTF-8 JSON text as unicode escapes (script-safe)."""
+    return b.replace(b"<", b"\\u003c").replace(b">", b"\\u003e").replace(b"&", b"\\u0026")
 
 
 def report_parts(
-    data: Mapping[str, Any], *, title: str | None = None, task_json: str | None = None
+    data: Mapping[str, Any], *, title: str | None = None, task_json: Any = None
 ) -> list[bytes]:
     """Return the page of a :func:`report_data` document as a list of UTF-8 byte strings.
 
     Joined, they are the HTML file; :func:`write_report` writes them without joining (the
     plotly.js bundle, most of the page, is never decoded or copied). ``task_json``: the
-    text of ``task.json`` for ``data["task"]``, embedded as is (:func:`_json_for_script`).
+    text of ``task.json`` for ``data["task"]`` (or the written file, a
+    :class:`apo.report.writer.TaskJson`), embedded as is (:func:`_json_for_script`).
     """
+    return list(_page_pieces(data, title=title, task_json=task_json))
+
+
+def _page_pieces(
+    data: Mapping[str, Any], *, title: str | None = None, task_json: Any = None
+) -> Iterator[bytes]:
+    """Yield the pieces of :func:`report_parts`, the task's text read while they are written."""
     src = str(data["task"].get("source") or "demonstration")
     text = title or f"apo report: {src}"  # escaped by hand: importing html costs 15 ms
     text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-    parts = {
-        b"__APO_TITLE__": text.encode("utf-8"),
-        b"__APO_CSS__": _asset("report.css"),
-        b"__APO_PLOTLY__": plotly_js(),
-        b"__APO_DATA__": _json_for_script(data, task_json),
-        b"__APO_JS__": _asset("report.js"),
+    parts: dict[bytes, Callable[[], Iterator[bytes]]] = {
+        b"__APO_TITLE__": lambda: iter([text.encode("utf-8")]),
+        b"__APO_CSS__": lambda: iter([_asset("report.css")]),
+        b"__APO_PLOTLY__": lambda: iter([plotly_js()]),
+        b"__APO_DATA__": lambda: _script_pieces(data, task_json),
+        b"__APO_JS__": lambda: iter([_asset("report.js")]),
     }
-    out: list[bytes] = []
     rest = (_VIEWER / "report.html").read_bytes()
     for key in _PLACEHOLDERS:
         head, sep, rest = rest.partition(key.encode("ascii"))
         if not sep:
             raise ApoError(f"report template: placeholder {key} missing")
-        out += [head, parts[sep]]
-    out.append(rest)
-    return out
+        yield head
+        yield from parts[sep]()
+    yield rest
 
 
 def report_html(data: Mapping[str, Any], *, title: str | None = None) -> str:
@@ -441,14 +472,18 @@ def write_report(
     data: Mapping[str, Any],
     *,
     title: str | None = None,
-    task_json: str | None = None,
+    task_json: Any = None,
 ) -> int:
     """Write the page of a :func:`report_data` document to ``path``; return its size in bytes.
 
-    Not atomic by itself: callers write into an :class:`apo.outputs.OutputSet` or through
+    ``task_json``: the text of ``task.json`` or the written file
+    (:class:`apo.report.writer.TaskJson`), spliced in as the document's task. Not atomic by
+    itself: callers write into an :class:`apo.outputs.OutputSet` or through
     :func:`apo.outputs.atomic_file`.
     """
-    parts = report_parts(data, title=title, task_json=task_json)
+    size = 0
     with open(path, "wb") as fh:
-        fh.writelines(parts)
-    return sum(len(b) for b in parts)
+        for piece in _page_pieces(data, title=title, task_json=task_json):
+            fh.write(piece)
+            size += len(piece)
+    return size

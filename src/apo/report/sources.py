@@ -270,7 +270,9 @@ def recognition_report(
     """Return the report document of a recognition (``apo analyze`` writes it as report.html).
 
     Write it with :func:`apo.report.html.write_report`. ``doc`` is ``task_to_dict(rec.task)``
-    where the caller has it already. Costs the packing of the per-frame arrays: a few
+    where the caller has it already, or its top-level fields only
+    (:attr:`apo.report.writer.TaskJson.head`, the task's text then spliced in by
+    ``write_report``). Costs the packing of the per-frame arrays: a few
     milliseconds (``docs/report.md``, ``benchmarks/report.py``).
     """
     from apo.report.html import report_data
@@ -284,4 +286,5 @@ def recognition_report(
         environment=environment,
         frames=frames_from_recognition(rec, X_observed),
         inputs=inputs_summary(doc, files),
+        state_ids=None if "states" in doc else [s.id for s in rec.task.states],
     )

@@ -29,12 +29,17 @@ if TYPE_CHECKING:
     from apo.recognition import Recognition
     from apo.task import ModelRef
 
-ReportWriter = Callable[[Path, Mapping[str, Any], str], object]
-"""``write(path, task_doc, task_json)``: writes ``report.html`` of a recognition to ``path``."""
+ReportWriter = Callable[[Path, Mapping[str, Any], "str | TaskJson"], object]
+"""``write(path, task_doc, task_json)``: writes ``report.html`` of a recognition to ``path``.
+
+``task_json`` is the text of ``task.json`` or, from :func:`write_recognition`, the written
+file (:class:`TaskJson`; ``task_doc`` then holds its top-level fields only, not the states).
+"""
 
 __all__ = [
     "PlotWorker",
     "ReportWriter",
+    "TaskJson",
     "frames_csv",
     "frames_csv_chunks",
     "gc_paused",
@@ -177,7 +182,7 @@ def frames_csv(rec: Recognition) -> str:
 
 
 #: Frames per chunk of ``frames.csv`` formatted at once (:func:`frames_csv_chunks`).
-CSV_BLOCK_FRAMES = 4096
+CSV_BLOCK_FRAMES = 1024
 
 
 def frames_csv_chunks(rec: Recognition, block: int = CSV_BLOCK_FRAMES) -> Iterator[str]:
@@ -223,7 +228,9 @@ def task_document(rec: Recognition) -> tuple[dict[str, Any], str]:
 
     The text is :func:`apo.outputs.json_text` of the document, two levels deep: one line
     per state, transition, rejected run and graph entry (as fast as ``json.dumps`` without
-    an indent, ten times faster than ``json.dumps(indent=2)``).
+    an indent, ten times faster than ``json.dumps(indent=2)``). Both are whole in memory:
+    :func:`write_recognition` writes the file block by block instead
+    (:func:`apo.task.task_json_chunks`).
     """
     from apo.outputs import json_text
     from apo.task import task_to_dict
@@ -231,6 +238,69 @@ def task_document(rec: Recognition) -> tuple[dict[str, Any], str]:
     with gc_paused():
         doc = task_to_dict(rec.task)
         return doc, json_text(doc, depth=TASK_JSON_DEPTH)
+
+
+#: Top-level fields of ``task.json`` that grow with the task (:attr:`TaskJson.head` lacks them).
+_LONG_FIELDS = ("states", "transitions", "rejected", "graph")
+
+
+class TaskJson:
+    """A written ``task.json``: its top-level fields, and its text read back in chunks.
+
+    What :func:`write_recognition` hands to ``--json`` printing and to ``report.html``
+    instead of the whole text: the file is written once, block by block, and read back a
+    chunk at a time (the page cache holds it), so no copy of a long task's text is ever in
+    memory whole.
+    """
+
+    #: Bytes read at a time.
+    CHUNK = 1 << 20
+
+    def __init__(self, path: Path, head: Mapping[str, Any]) -> None:
+        self.path = Path(path)
+        self.head = {k: v for k, v in head.items() if k not in _LONG_FIELDS}
+
+    def text_chunks(self) -> Iterator[str]:
+        """Yield the file's text (UTF-8) in chunks."""
+        with open(self.path, encoding="utf-8", newline="") as fh:
+            while chunk := fh.read(self.CHUNK):
+                yield chunk
+
+    def stripped_chunks(self) -> Iterator[bytes]:
+        """Yield the file's bytes without leading and trailing whitespace, in chunks."""
+        with open(self.path, "rb") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            start, end = _stripped_span(fh, size)
+            fh.seek(start)
+            left = end - start
+            while left > 0:
+                chunk = fh.read(min(self.CHUNK, left))
+                if not chunk:
+                    break
+                left -= len(chunk)
+                yield chunk
+
+
+def _stripped_span(fh: Any, size: int) -> tuple[int, int]:
+    """``(start, end)`` of the bytes of the open file ``fh`` without surrounding whitespace."""
+    space = b" \t\n\r\x0b\x0c"
+    end = size
+    while end > 0:
+        fh.seek(max(0, end - 64))
+        tail = fh.read(end - max(0, end - 64))
+        kept = tail.rstrip(space)
+        end -= len(tail) - len(kept)
+        if kept:
+            break
+    start = 0
+    while start < end:
+        fh.seek(start)
+        head = fh.read(min(64, end - start))
+        kept = head.lstrip(space)
+        start += len(head) - len(kept)
+        if kept:
+            break
+    return start, end
 
 
 @contextmanager
@@ -265,22 +335,35 @@ def write_recognition(
     worker: PlotWorker | None = None,
     report: ReportWriter | None = None,
     task: tuple[dict[str, Any], str] | None = None,
+    on_task: Callable[[TaskJson], object] | None = None,
 ) -> dict[str, Path]:
     """Write ``task.json``, ``frames.csv`` (``dof.png``, ``report.html``) into ``outs``.
 
-    ``report(path, task_doc, task_json)`` writes ``report.html`` to ``path`` given the task
-    document and its JSON text as written to ``task.json`` (serialised once, embedded as
-    is; see :func:`report_maker`); ``worker`` draws the plot while this process writes the
-    rest; ``task`` is :func:`task_document` of ``rec`` if the caller has it already. Returns
-    ``{what: final path}``
+    ``task.json`` is written block by block (:func:`apo.task.task_json_chunks`) unless
+    ``task`` (:func:`task_document` of ``rec``) is given; ``on_task(task_json)`` is called
+    once it is written (e.g. to print it), before the rest. ``report(path, task_doc,
+    task_json)`` writes ``report.html`` to ``path`` given the written task (a
+    :class:`TaskJson`, embedded as is; see :func:`report_maker`); ``worker`` draws the plot
+    while this process writes the rest. Returns ``{what: final path}``
     (``task``, ``frames``, ``plot``, ``report``); the files appear there when ``outs`` commits.
     """
+    from apo.task import task_head, task_json_chunks
+
     written: dict[str, Path] = {}
     want_plot = plot and bool(rec.task.states)
     png = outs.path("dof.png")
     submitted = want_plot and worker is not None and worker.submit(rec, png, title)
-    doc, text = task if task is not None else task_document(rec)
-    written["task"] = outs.write_text("task.json", text)
+    with gc_paused():
+        if task is not None:
+            head: Mapping[str, Any] = task[0]
+            written["task"] = outs.write_text("task.json", task[1])
+        else:
+            head = task_head(rec.task)
+            chunks = task_json_chunks(rec.task, depth=TASK_JSON_DEPTH)
+            written["task"] = outs.write_chunks("task.json", chunks)
+    written_task = TaskJson(outs.path("task.json"), head)
+    if on_task is not None:
+        on_task(written_task)
     with gc_paused():
         written["frames"] = outs.write_chunks("frames.csv", frames_csv_chunks(rec))
     if want_plot:
@@ -291,7 +374,7 @@ def write_recognition(
         written["plot"] = outs.final("dof.png")
     if report is not None:
         with gc_paused():
-            report(outs.path("report.html"), doc, text)
+            report(outs.path("report.html"), written_task.head, written_task)
         written["report"] = outs.final("report.html")
     return written
 
@@ -301,7 +384,7 @@ def report_maker(
 ) -> ReportWriter:
     """Return a :data:`ReportWriter` for ``report.html`` of ``rec`` (inputs: files to hash)."""
 
-    def write(path: Path, doc: Mapping[str, Any], task_json: str) -> int:
+    def write(path: Path, doc: Mapping[str, Any], task_json: str | TaskJson) -> int:
         from apo.report.html import write_report
         from apo.report.sources import file_entry, recognition_report
 
