@@ -99,34 +99,6 @@ def test_prefetched_histogram_frames_give_the_same_environment_points(
             np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("seed", range(8))
-def test_projective_icp_stopped_on_a_limit_cycle_is_where_it_would_end(seed: int) -> None:
-    """Stopping on a stall (``STALL``) against iterating to the limit.
-
-    On a limit cycle the pose goes back and forth by less than ``STALL * tolerance`` (vertex
-    displacement, 0.2 mm): where it stops and where 40 iterations leave it differ by no more.
-    """
-    from apo.perception.example import peg_and_slot
-    from apo.perception.projective import STALL, face_planes, projective_icp
-    from apo.spatial import pose_from_twist, transform_points
-    from test_perception_projective import CAMERA, observe, peg_pose
-
-    rng = np.random.default_rng(100 + seed)
-    X_true = peg_pose(rng.uniform(0.4, 1.0), rng.uniform(20, 70), rng.uniform(-60, 60))
-    c = rng.uniform(1e-3, 6e-3)
-    depth, mask = observe(X_true, c, seed, occluder=bool(seed % 2))
-    twist = np.r_[rng.normal(0, np.radians(1.5), 3), rng.normal(0, 0.002, 3)]
-    start = X_true @ pose_from_twist(twist)
-    (V, T), _ = peg_and_slot()
-    sigma = c * np.where(depth > 0, depth, 0.0) ** 2
-    kw = {"mask": mask, "sigma": sigma, "floor": 0.002, "iterations": 40}
-    fast = projective_icp(depth, CAMERA, face_planes(V, T), start, **kw)
-    full = projective_icp(depth, CAMERA, face_planes(V, T), start, stall=0.0, **kw)
-    moved = transform_points(fast.X_CM, V) - transform_points(full.X_CM, V)
-    assert np.linalg.norm(moved, axis=1).max() <= STALL * 1e-5  # the default tolerance
-    assert fast.iterations <= full.iterations
-
-
 def test_batch_icp_on_every_core_gives_the_same_transforms(monkeypatch: pytest.MonkeyPatch) -> None:
     """Large k-d tree queries run with ``workers=-1`` (``PARALLEL_QUERY``): identical results."""
     from apo.perception import search

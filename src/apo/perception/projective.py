@@ -43,8 +43,7 @@ Each iteration (see :func:`projective_icp`):
    deep in its hole, a few pixels in view, once turned 90 deg in one step).
 
 It stops when a step moves the model by less than ``tolerance`` and the scale has reached
-the noise's, when it stalls (two steps below ``STALL`` tolerances, neither half the one
-before it), or after ``iterations`` steps.
+the noise's, or after ``iterations`` steps.
 """
 
 from __future__ import annotations
@@ -64,13 +63,6 @@ __all__ = ["FacePlanes", "ProjectiveResult", "face_planes", "projective_icp", "t
 
 TUKEY_K = 4.685
 """Tukey's biweight constant in standard deviations (95 % efficiency under Gaussian noise)."""
-
-STALL = 20.0
-"""At the final scale, two steps in a row below this many ``tolerance`` (0.2 mm), each more
-than half the step before it, end the iterations: the pose goes back and forth between
-poses 10 to 100 micrometres apart (the Tukey weights and the contour pixels switch between
-them), which took a quarter of the ICPs of variant seed 1 to the iteration limit (measured;
-a converging ICP shrinks its step by 3 to 10 times per iteration)."""
 
 CONTOUR_WEIGHT_MAX = 25.0
 """Largest weight of a contour or constraint row relative to a surface row."""
@@ -241,7 +233,6 @@ def projective_icp(
     damping: float = 1e-4,
     silhouette: bool = True,
     constraint: Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]] | None = None,
-    stall: float = STALL,
 ) -> ProjectiveResult:
     """Projective point-to-plane ICP of a model to the object's pixels of a depth image.
 
@@ -290,9 +281,6 @@ def projective_icp(
         ``q_M`` (model frame) whose residual ``r`` grows along ``n_M`` (model frame) as the
         model moves, weighted 1 (e.g. non-penetration of a known obstacle:
         :func:`apo.perception.register.register_projective`).
-    stall : float, optional
-        Stop on a limit cycle of steps below this many ``tolerance`` (see :data:`STALL`);
-        0: only on convergence or the iteration limit.
 
     Returns
     -------
@@ -305,7 +293,7 @@ def projective_icp(
     final_scale = float(win.scale[win.mask].max(initial=floor))
     scale_k = max(start_scale, final_scale)
     cos_min = float(np.cos(max_angle))
-    pairs, rms, converged, steps, last_move, slow = 0, float("inf"), False, 0, float("inf"), 0
+    pairs, rms, converged, steps = 0, float("inf"), False, 0
     for it in range(1, iterations + 1 if n_obs else 1):  # no object pixel: no evidence
         steps = it
         rows = _rows(X, model, win, cos_min, silhouette)
@@ -321,14 +309,9 @@ def projective_icp(
         if moved > scale_k:  # trust region: no farther than the pairs' reach
             delta *= scale_k / moved
         X = X @ np.linalg.inv(_exp_se3(delta))
-        final = scale_k <= final_scale
-        if final and moved < tolerance:
+        if moved < tolerance and scale_k <= final_scale:
             converged = True
             break
-        slow = slow + 1 if final and 0.5 * last_move < moved < stall * tolerance else 0
-        if slow >= 2:
-            break  # a limit cycle between poses micrometres apart (see STALL)
-        last_move = moved
         scale_k = max(scale_k / 2.0, final_scale)
     return ProjectiveResult(orthonormalised(X), pairs, n_obs, rms, steps, converged)
 
