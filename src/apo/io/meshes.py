@@ -14,6 +14,7 @@ stores float32, so STEP coordinates are exact to about 1e-7 relative.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -75,6 +76,20 @@ def step_length_unit(path: str | Path) -> str | None:
         ``"m"``, ``"cm"``, ``"mm"``, ``"um"``, ``"km"``, ``"in"`` or ``"ft"``: the unit of the
         ``LENGTH_UNIT`` that the file's ``GLOBAL_UNIT_ASSIGNED_CONTEXT`` entities use, when
         they all use the same one; None otherwise.
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return _step_length_unit(os.path.abspath(path), -1, -1)  # raises as the read does
+    return _step_length_unit(os.path.abspath(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _step_length_unit(path: str, size: int, mtime_ns: int) -> str | None:
+    """Return :func:`step_length_unit` of the file of this size and mtime (read once).
+
+    Loading a STEP model asks twice (the cache key, the messages' unit); a changed file
+    (another size or mtime) is read again.
     """
     text = Path(path).read_text(encoding="latin-1", errors="replace")
     entities = {
@@ -377,9 +392,10 @@ def load_polyhedron(
 
 _LENGTHS: dict[str, float] = {**UNITS, "um": 1e-6, "km": 1e3, "ft": 0.3048}
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
-_POINT = re.compile(rf"\[\s*({_NUM})[,\s]+({_NUM})[,\s]+({_NUM})\s*\]")
-_VOLUME = re.compile(rf"({_NUM}) m\^3")
-_LENGTH = re.compile(rf"({_NUM}) m\b(?!\^)")
+# patterns compiled on first use (``re``'s cache): only a warning's message needs them
+_POINT = rf"\[\s*({_NUM})[,\s]+({_NUM})[,\s]+({_NUM})\s*\]"
+_VOLUME = rf"({_NUM}) m\^3"
+_LENGTH = rf"({_NUM}) m\b(?!\^)"
 
 
 def _model_unit(path: Path, units: str | None) -> str:
@@ -406,9 +422,9 @@ def in_model_units(message: str, unit: str) -> str:
         a, b, c = (float(m.group(i)) / k for i in (1, 2, 3))
         return f"[{a:.6g}, {b:.6g}, {c:.6g}] {unit}"
 
-    message = _POINT.sub(point, message)
-    message = _VOLUME.sub(lambda m: f"{float(m.group(1)) / k**3:.3g} {unit}^3", message)
-    return _LENGTH.sub(lambda m: f"{float(m.group(1)) / k:.3g} {unit}", message)
+    message = re.sub(_POINT, point, message)
+    message = re.sub(_VOLUME, lambda m: f"{float(m.group(1)) / k**3:.3g} {unit}^3", message)
+    return re.sub(_LENGTH, lambda m: f"{float(m.group(1)) / k:.3g} {unit}", message)
 
 
 def _strip_label(message: str, label: str) -> str:
