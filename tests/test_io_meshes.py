@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from apo import shapes
+from apo.constants import UNITS
 from apo.errors import GeometryError, InputFormatError
 from apo.geometry import Polyhedron
 from apo.io import load_polyhedron, load_triangles, step_length_unit
@@ -299,7 +300,7 @@ def test_cache_returns_the_same_triangles_without_reading_the_file_again(tmp_pat
     from apo.io.meshes import load_triangles
 
     monkeypatch.setenv("APO_CACHE_DIR", str(tmp_path / "cache"))
-    path = tmp_path / "cube.stl"
+    path = tmp_path / "cube.obj"  # binary STL is read without trimesh, uncached
     trimesh.creation.box(extents=[50.0, 40.0, 30.0]).export(path)
     v1, t1 = load_triangles(path, units="mm")
     assert len(list((tmp_path / "cache" / "meshes").glob("*.npz"))) == 1
@@ -328,7 +329,7 @@ def test_cache_off_or_unwritable_still_reads(tmp_path, monkeypatch):
 
     from apo.io.meshes import cache_dir, load_triangles
 
-    path = tmp_path / "cube.stl"
+    path = tmp_path / "cube.obj"  # binary STL is read without trimesh, uncached
     trimesh.creation.box(extents=[50.0, 40.0, 30.0]).export(path)
     monkeypatch.setenv("APO_CACHE", "0")
     assert cache_dir() is None
@@ -385,3 +386,45 @@ def test_messages_in_metres_are_left_alone() -> None:
         "mesh is not closed: e.g. between [100, 200, 300] mm and [400, 500, 600] mm; 0.001 mm"
     )
     assert in_model_units("volume -0.001 m^3", "mm") == "volume -1e+06 mm^3"
+
+
+# ---- binary STL read without trimesh ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_binary_stl_reads_as_trimesh_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, seed: int
+) -> None:
+    """The same float64 vertices and triangles as ``trimesh.load(process=False)``, no import."""
+    from apo.io.meshes import load_triangles
+
+    monkeypatch.setenv("APO_CACHE", "0")
+    rng = np.random.default_rng(seed)
+    V = rng.normal(0, 30.0, (int(rng.integers(3, 60)), 3))
+    T = rng.integers(0, len(V), (int(rng.integers(1, 80)), 3))
+    path = tmp_path / "m.stl"
+    trimesh.Trimesh(V, T, process=False).export(str(path))  # binary STL
+    ref = trimesh.load(str(path), file_type="stl", process=False)
+    monkeypatch.setattr(trimesh, "load", lambda *a, **k: pytest.fail("trimesh.load called"))
+    for units in ("mm", "m", "in"):
+        v, t = load_triangles(path, units=units)
+        np.testing.assert_array_equal(v, np.asarray(ref.vertices, dtype=np.float64) * UNITS[units])
+        np.testing.assert_array_equal(t, ref.faces)
+        assert v.dtype == np.float64 and t.dtype == np.int64
+
+
+def test_ascii_and_empty_stl_still_go_to_trimesh(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from apo.io.meshes import load_triangles
+
+    monkeypatch.setenv("APO_CACHE", "0")
+    path = tmp_path / "a.stl"
+    box = trimesh.creation.box(extents=[50.0, 40.0, 30.0])
+    path.write_bytes(trimesh.exchange.stl.export_stl_ascii(box).encode())
+    v, t = load_triangles(path)
+    assert len(t) == 12 and np.ptp(v[:, 0]) == pytest.approx(0.05)
+    empty = tmp_path / "e.stl"
+    empty.write_bytes(bytes(80) + np.uint32(0).tobytes())
+    with pytest.raises(InputFormatError, match=r"e\.stl"):
+        load_triangles(empty)

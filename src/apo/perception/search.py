@@ -38,9 +38,20 @@ def _tree(model: ModelCloud, dense: bool) -> Any:
     name = "_tree" if dense else "_sparse_tree"
     tree = getattr(model, name, None)
     if tree is None:
-        tree = cKDTree(model.dense_points if dense else model.points)
+        tree = cKDTree(model.dense_points if dense else model.points, compact_nodes=False)
         setattr(model, name, tree)
     return tree
+
+
+PARALLEL_QUERY = 10000
+"""k-d tree queries of at least this many points run on every core (``workers=-1``: the
+same results; measured on 40,000 samples: 20,000 points 83 -> 42 ms wall, CPU unchanged;
+1,500 points: no faster, 50 % more CPU)."""
+
+
+def _workers(Q: FloatArray) -> int:
+    """Return the ``workers`` of a k-d tree query of the points ``Q`` (..., 3)."""
+    return -1 if Q.size >= 3 * PARALLEL_QUERY else 1
 
 
 def _weights(r: FloatArray, loss: str, scale: float) -> FloatArray:
@@ -117,7 +128,7 @@ def batch_icp(
             break
         Ta = out[active]
         Q = np.einsum("kij,nj->kni", Ta[:, :3, :3], P) + Ta[:, None, :3, 3]
-        d, idx = tree.query(Q.reshape(-1, 3), distance_upper_bound=distance)
+        d, idx = tree.query(Q.reshape(-1, 3), distance_upper_bound=distance, workers=_workers(Q))
         ok = np.isfinite(d).reshape(Q.shape[:2])
         idx = np.minimum(idx, len(samples) - 1).reshape(Q.shape[:2])
         n = normals[idx]
@@ -152,7 +163,9 @@ def inlier_fraction(
     Ts = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
     Q = np.einsum("kij,nj->kni", Ts[:, :3, :3], P) + Ts[:, None, :3, 3]
     spacing = model.spacing * float(np.sqrt(len(model.dense_points) / len(model.points)))
-    d, idx = _tree(model, False).query(Q.reshape(-1, 3), distance_upper_bound=4 * spacing)
+    d, idx = _tree(model, False).query(
+        Q.reshape(-1, 3), distance_upper_bound=4 * spacing, workers=_workers(Q)
+    )
     ok = np.isfinite(d).reshape(Q.shape[:2])
     idx = np.minimum(idx, len(model.points) - 1).reshape(Q.shape[:2])
     r = np.abs(np.einsum("kni,kni->kn", Q - model.points[idx], model.normals[idx]))

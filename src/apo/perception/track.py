@@ -31,7 +31,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -380,9 +380,24 @@ def _window(cam: Camera, X_CM: FloatArray, model: ModelCloud, margin: float) -> 
     return u0, v0, u1 - u0, v1 - v0
 
 
+def _histogram_indices(n: int, options: TrackOptions) -> list[int]:
+    """Return the frames of the occupancy histogram: up to ``histogram_frames``, evenly spaced."""
+    idx = np.unique(np.linspace(0, n - 1, min(n, options.histogram_frames)).round().astype(int))
+    return [int(i) for i in idx]
+
+
+def _prefetch(pool: Executor, src: FrameSource, options: TrackOptions) -> dict[int, Future[_Frame]]:
+    """Start decoding the histogram's frames in ``pool`` (Pillow releases the GIL)."""
+    colour = options.colour != _ANY
+    return {
+        i: pool.submit(_read, src, i, colour=colour) for i in _histogram_indices(len(src), options)
+    }
+
+
 def _environment_points(
-    src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame]
-) -> tuple[list[FloatArray], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame],
+    prefetch: dict[int, Future[_Frame]] | None = None,
+) -> tuple[list[FloatArray], npt.NDArray[np.float32], npt.NDArray[np.float32]]:  # fmt: skip
     """Return the static regions' points (median depth of their pixels) and two depths.
 
     The median of every pixel over at most 9 frames (for the surface check), and the
@@ -390,14 +405,15 @@ def _environment_points(
 
     The regions are the largest connected components of the static pixels, largest first
     (:func:`_components`). The frames decoded are kept in ``cache`` for the tracking loop
-    (decoded once).
+    (decoded once); those in ``prefetch`` (:func:`_prefetch`) are taken from there.
     """
-    n = len(src)
-    idx = np.unique(np.linspace(0, n - 1, min(n, options.histogram_frames)).round().astype(int))
+    idx = _histogram_indices(len(src), options)
     masks = np.empty((len(idx), src.camera.height, src.camera.width), dtype=bool)
     depths = np.empty(masks.shape, dtype=np.float32)
+    pending = prefetch or {}
     for k, i in enumerate(idx):
-        rgb, depth = cache[int(i)] = _read(src, int(i), colour=options.colour != _ANY)
+        frame = pending.pop(i).result() if i in pending else None
+        rgb, depth = cache[i] = frame or _read(src, i, colour=options.colour != _ANY)
         masks[k] = seg.objects(rgb, depth)
         depths[k] = depth
     static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
@@ -504,6 +520,7 @@ class _Scene:
     env: Registration | None = None
     env_depth: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     cache: dict[int, _Frame] = field(default_factory=dict)  # frames decoded during the setup
+    prefetch: dict[int, Future[_Frame]] = field(default_factory=dict)  # being decoded
 
     @property
     def camera(self) -> Camera:
@@ -539,7 +556,9 @@ def _open_scene(
 def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     """Register the environment on the median depth of its pixels over many frames."""
     opt, E, cam = scene.opt, scene.E, scene.camera
-    parts, median_depth, surface = _environment_points(scene.src, scene.seg, opt, scene.cache)
+    parts, median_depth, surface = _environment_points(
+        scene.src, scene.seg, opt, scene.cache, scene.prefetch
+    )
     parts = [p for p in parts if len(p) >= opt.min_points]
     if not parts:
         raise TrackingLostError(
@@ -934,9 +953,18 @@ def track_frames(
     opt = options or TrackOptions()
     XG0 = _as_pose(init_grasped, "init_grasped")
     XE0 = _as_pose(init_environment, "init_environment")
-    scene = _open_scene(frames, grasped_mesh, environment_mesh, units, opt)
-    _find_environment(scene, XE0)
-    src, n = scene.src, len(scene.src)
+    src: FrameSource = frames if not isinstance(frames, str | Path) else open_frames(frames)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        # The histogram's frames are decoded while the models and the noise are set up.
+        prefetch = _prefetch(pool, src, opt)
+        try:
+            scene = _open_scene(src, grasped_mesh, environment_mesh, units, opt)
+            scene.prefetch = prefetch
+            _find_environment(scene, XE0)
+        finally:  # on an error, the frames not started yet are not decoded
+            for f in prefetch.values():
+                f.cancel()
+    n = len(src)
     tracker = _Tracker(scene, XG0)
     with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
         colour = scene.seg.colour.used  # else the colour PNGs are not decoded at all
