@@ -6,7 +6,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from apo.contact import ContactState
 from apo.recognition.bridges import Bridge
 from apo.recognition.distances import DistanceCache
 from apo.recognition.types import (
@@ -62,22 +61,20 @@ class EmissionLayout:
 
 def emission_costs(
     dists: DistanceCache,
-    keys: Sequence[StateKey],
-    touching: Sequence[frozenset[tuple[tuple[str, int], tuple[str, int]]]],
+    layout: EmissionLayout,
     obs: IntArray,
     w: SegmentationCosts,
     enclosed: BoolArray | None = None,
-    layout: EmissionLayout | None = None,
 ) -> FloatArray:
     """Cost of every candidate at every frame (``docs/recognition.md``), shape (N, K).
 
-    ``enclosed`` (N,): the frames of :func:`enclosed_frames`, where the free state costs
-    ``w.enclosed`` more. ``layout``: ``EmissionLayout(keys, touching)`` if the caller has it
-    (the same for every block of frames).
+    ``layout``: ``EmissionLayout(keys, touching)`` of the candidates (the same for every
+    block of frames). ``enclosed`` (N,): the frames of :func:`enclosed_frames`, where the
+    free state costs ``w.enclosed`` more.
     """
-    lay = EmissionLayout(keys, touching) if layout is None else layout
+    lay = layout
     n = len(obs)
-    emission = np.zeros((n, len(keys)))
+    emission = np.zeros((n, len(lay.keys)))
     if enclosed is not None and w.enclosed:
         emission[:, lay.free] += w.enclosed * enclosed[:, None]
     if not lay.ukeys:
@@ -113,29 +110,26 @@ def enclosed_frames(keys: Sequence[StateKey], labels: IntArray, outliers: BoolAr
 
 def candidate_costs(
     dists: DistanceCache,
-    keys: Sequence[StateKey],
-    states: Sequence[ContactState],
+    layout: EmissionLayout,
     candidates: Sequence[CandidateState | None],
     bridges: Sequence[Bridge],
     obs: IntArray,
     w: SegmentationCosts,
     start: int = 0,
     enclosed: BoolArray | None = None,
-    layout: EmissionLayout | None = None,
 ) -> FloatArray:
     """Cost of every analysed candidate at every frame, shape (N, K).
 
-    :func:`emission_costs` with each candidate's touching set, plus: a bridging state costs
-    no more at its two boundary frames than the observed state it joins there (it happens
-    between them and holds that state's contacts too); a candidate whose correction
-    converged at no frame costs ``fail`` more per frame; one not analysed is excluded.
-    ``dists``, ``obs`` and ``enclosed`` may be a block of frames starting at frame
-    ``start`` (the bridges' boundary frames are frame numbers of the whole sequence).
-    ``layout``: the :class:`EmissionLayout` of ``keys`` and the states' touching pairs.
+    :func:`emission_costs` with each candidate's touching set (``layout``: the
+    :class:`EmissionLayout` of the candidates' keys and their states' touching pairs), plus:
+    a bridging state costs no more at its two boundary frames than the observed state it
+    joins there (it happens between them and holds that state's contacts too); a candidate
+    whose correction converged at no frame costs ``fail`` more per frame; one not analysed
+    is excluded. ``dists``, ``obs`` and ``enclosed`` may be a block of frames starting at
+    frame ``start`` (the bridges' boundary frames are frame numbers of the whole sequence).
     """
-    touching = [s.touching for s in states]
-    emission = emission_costs(dists, keys, touching, obs, w, enclosed, layout)
-    k_obs = len(keys) - len(bridges)
+    emission = emission_costs(dists, layout, obs, w, enclosed)
+    k_obs = len(layout.keys) - len(bridges)
     for b, (_cand, (f1, f2), (k1, k2)) in enumerate(bridges, start=k_obs):
         for f, k in ((f1 - start, k1), (f2 - start, k2)):
             if 0 <= f < len(obs):

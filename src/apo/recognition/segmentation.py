@@ -116,16 +116,15 @@ def first_pass(
     analyse_candidate` ranks a state's frames by). Outlier frames cost nothing to any state.
     """
     w = scene.costs
-    touching = [s.touching for s in observed.states]
     labels = observed.labels
     dec = UniformViterbi(len(observed.keys), w.switch)
     own = np.empty(scene.n)
     enc = enclosed_frames(observed.keys, labels, scene.outliers)
-    lay = EmissionLayout(observed.keys, touching)
+    lay = EmissionLayout(observed.keys, [s.touching for s in observed.states])
     for a, b in frame_blocks(scene.n, block):
         lab = labels[a:b]
         bd = BlockDistances(dists, a, b)
-        e = emission_costs(bd, observed.keys, touching, lab, w, enc[a:b], lay)
+        e = emission_costs(bd, lay, lab, w, enc[a:b])
         own[a:b] = e[np.arange(b - a), lab]
         dec.feed(np.where(scene.outliers[a:b, None], 0.0, e))
     return dec.path()[0], own
@@ -177,8 +176,8 @@ def segment(
     lay = EmissionLayout(an.keys, [s.touching for s in states])
     for a, b in frame_blocks(scene.n, block):
         e = candidate_costs(
-            BlockDistances(dists, a, b), an.keys, states, an.candidates, an.bridges,
-            labels[a:b], w, start=a, enclosed=enc[a:b], layout=lay,
+            BlockDistances(dists, a, b), lay, an.candidates, an.bridges,
+            labels[a:b], w, start=a, enclosed=enc[a:b],
         )[:, columns]  # fmt: skip
         e = np.where(scene.outliers[a:b, None] & np.isfinite(e), 0.0, e)
         costs[a:b] = e
