@@ -12,7 +12,7 @@ G in the environment frame E (``docs/conventions.md``).
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, cast
 
@@ -313,15 +313,13 @@ def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
 
 def _task_dict(task: TaskModel, *, lazy: bool) -> dict[str, Any]:
     """:func:`task_to_dict`; ``lazy``: its long arrays as :class:`apo.outputs.JsonItems`."""
-    if task.units not in UNITS:
-        raise ValueError(f"unknown units {task.units!r}; expected one of {sorted(UNITS)}")
+    head = task_head(task)  # checks the units
     k = 1.0 / UNITS[task.units]
     states = _in_blocks(task.states, lambda b: _states_to_dicts(b, k), lazy)
     transitions = _in_blocks(
         task.transitions, lambda b: [_transition_to_dict(t, k) for t in b], lazy
     )
     rejected = _in_blocks(task.rejected, lambda b: [_rejected_to_dict(r) for r in b], lazy)
-    head = task_head(task)
     extra = head.pop("extra", None)
     return {
         **head,
@@ -356,7 +354,9 @@ def task_head(task: TaskModel) -> dict[str, Any]:
     }
 
 
-def _in_blocks(items: Sequence[Any], convert: Any, lazy: bool) -> Any:
+def _in_blocks(
+    items: Sequence[Any], convert: Callable[[Sequence[Any]], list[Any]], lazy: bool
+) -> Any:
     """``convert(items)`` (a list), or with ``lazy`` a :class:`JsonItems` converting blocks."""
     if not lazy:
         return convert(items)
