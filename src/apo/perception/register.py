@@ -133,7 +133,7 @@ class ModelCloud:
         self.centroid = self.points.mean(axis=0)
         self._pcd: Any = None
         self._dense: Any = None
-        self._tree: Any = None  # k-d trees of the dense and sparse samples (also search.py)
+        self._tree: Any = None  # k-d trees of the dense and sparse samples (:meth:`tree`)
         self._sparse_tree: Any = None
         self._faces: FacePlanes | None = None
 
@@ -183,6 +183,23 @@ class ModelCloud:
         side, dist, _ = self.nearest_sample(points_M)
         return side, dist
 
+    def tree(self, dense: bool = True) -> Any:
+        """Return the ``scipy.spatial.cKDTree`` of the dense (or sparse) samples, built once.
+
+        Node boxes are not shrunk to their samples (``compact_nodes=False``): the same nearest
+        samples, queries of points millimetres off the surface 2 times faster (measured on
+        the environment's 200,000 dense samples; the non-penetration rows).
+        """
+        from scipy.spatial import cKDTree
+
+        if dense:
+            if self._tree is None:
+                self._tree = cKDTree(self.dense_points, compact_nodes=False)
+            return self._tree
+        if self._sparse_tree is None:
+            self._sparse_tree = cKDTree(self.points, compact_nodes=False)
+        return self._sparse_tree
+
     def nearest_sample(
         self, points_M: npt.ArrayLike, *, dense: bool = True, max_distance: float = np.inf
     ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.intp]]:
@@ -193,19 +210,9 @@ class ModelCloud:
         edges coarser). The k-d trees are built once. A point farther than ``max_distance``
         from every sample gets plane distance and distance ``inf`` and index -1.
         """
-        from scipy.spatial import cKDTree
-
         P = np.asarray(points_M, dtype=np.float64)
         pts, nrm = (self.dense_points, self.dense_normals) if dense else (self.points, self.normals)
-        if dense and self._tree is None:
-            # Node boxes not shrunk to their samples (compact_nodes=False): the same nearest
-            # samples, queries of points millimetres off the surface 2 times faster (measured
-            # on the environment's 200,000 dense samples; the non-penetration rows).
-            self._tree = cKDTree(pts, compact_nodes=False)
-        if not dense and self._sparse_tree is None:
-            self._sparse_tree = cKDTree(pts, compact_nodes=False)
-        tree = self._tree if dense else self._sparse_tree
-        dist, idx = tree.query(P, distance_upper_bound=max_distance)
+        dist, idx = self.tree(dense).query(P, distance_upper_bound=max_distance)
         idx = np.asarray(idx, dtype=np.intp)
         found = idx < len(pts)
         idx = np.where(found, idx, -1)

@@ -17,7 +17,7 @@ correspondence distance, a robust kernel: Tukey's biweight by default), in numpy
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -29,18 +29,6 @@ if TYPE_CHECKING:
     from apo.perception.register import ModelCloud
 
 __all__ = ["batch_icp", "centres", "distinct_poses", "inlier_fraction", "voxel_subsample"]
-
-
-def _tree(model: ModelCloud, dense: bool) -> Any:
-    """Return the model's k-d tree of its dense or sparse samples (built once, kept on it)."""
-    from scipy.spatial import cKDTree
-
-    name = "_tree" if dense else "_sparse_tree"
-    tree = getattr(model, name, None)
-    if tree is None:
-        tree = cKDTree(model.dense_points if dense else model.points, compact_nodes=False)
-        setattr(model, name, tree)
-    return tree
 
 
 PARALLEL_QUERY = 10000
@@ -119,7 +107,7 @@ def batch_icp(
     """
     P = np.asarray(points, dtype=np.float64)
     out = np.array(T, dtype=np.float64, copy=True).reshape(-1, 4, 4)
-    tree = _tree(model, dense)
+    tree = model.tree(dense)
     samples = model.dense_points if dense else model.points
     normals = model.dense_normals if dense else model.normals
     active = np.arange(len(out))
@@ -163,7 +151,7 @@ def inlier_fraction(
     Ts = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
     Q = np.einsum("kij,nj->kni", Ts[:, :3, :3], P) + Ts[:, None, :3, 3]
     spacing = model.spacing * float(np.sqrt(len(model.dense_points) / len(model.points)))
-    d, idx = _tree(model, False).query(
+    d, idx = model.tree(dense=False).query(
         Q.reshape(-1, 3), distance_upper_bound=4 * spacing, workers=_workers(Q)
     )
     ok = np.isfinite(d).reshape(Q.shape[:2])
