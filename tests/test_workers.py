@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from apo.recognition import workers
@@ -188,3 +189,19 @@ def test_correction_shares_cover_every_chunk_once() -> None:
         loads = [sum(n / m for k, a, _i, m in s for kk, aa, n in chunks if (kk, aa) == (k, a))
                  for s in shares]  # fmt: skip
         assert max(loads) <= 1.5 * sum(n for _k, _a, n in chunks) / parts + 1
+
+
+@pytest.mark.parametrize("jobs", [None, 1, 2])
+def test_correction_of_frames_without_elements_keeps_them(jobs: int | None) -> None:
+    # no state with elements (a demonstration without contact): nothing to correct or fork
+    from apo.contact import ContactState
+    from apo.recognition.correction import correct_by_label
+    from apo.shapes import box
+
+    cube = box([0.1, 0.1, 0.1])
+    X = np.stack([np.eye(4)] * 5)
+    X[:, 2, 3] = np.arange(5.0)
+    free = [ContactState((), frozenset())]
+    labels = np.zeros(5, dtype=np.int64)
+    Xc, b, a, c = correct_by_label(cube, cube, X, free, labels, 1e-3, jobs=jobs)
+    assert np.array_equal(Xc, X) and not b.any() and not a.any() and c.all()

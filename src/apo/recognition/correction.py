@@ -15,7 +15,7 @@ from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
 from apo.recognition.contacts import distinct_poses
 from apo.recognition.types import BoolArray, FloatArray, IntArray
-from apo.recognition.workers import run_parts, shared_zeros, workers_for
+from apo.recognition.workers import PARALLEL_MIN_FRAMES, run_parts, shared_zeros, workers_for
 
 Corrected = tuple[FloatArray, FloatArray, FloatArray, BoolArray]
 """Corrected poses (N, 4, 4), residuals before and after (N,), converged flags (N,)."""
@@ -175,7 +175,10 @@ def _distinct_to_correct(
     if k_max == 1 or not len(states):
         return 0
     with_elements = np.array([bool(s.elements) for s in states], dtype=bool)
-    return len(distinct_poses(X[with_elements[labels]])[0])
+    Xs = X[with_elements[labels]]
+    if len(Xs) == 0 or (k_max is None and len(Xs) < PARALLEL_MIN_FRAMES):
+        return len(Xs)  # too few for auto to fork: no need to look for repeats
+    return len(distinct_poses(Xs)[0])
 
 
 def _correct_pieces(
