@@ -208,9 +208,20 @@ def test_correction_of_frames_without_elements_keeps_them(jobs: int | None) -> N
     assert np.array_equal(Xc, X) and not b.any() and not a.any() and c.all()
 
 
-def _analyze(args: list[str]) -> subprocess.CompletedProcess[str]:
+# apo analyze with task.json written by a child whatever the number of states
+TASK_IN_CHILD = """
+import sys
+from apo.report import writer
+from apo.cli import main
+writer.TASK_IN_CHILD_STATES = 1
+sys.exit(main(["analyze", *sys.argv[1:]]))
+"""
+
+
+def _analyze(args: list[str], *, task_in_child: bool = False) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(SRC)}
-    cmd = [sys.executable, "-m", "apo.cli", "analyze", *args]
+    how = ["-c", TASK_IN_CHILD] if task_in_child else ["-m", "apo.cli", "analyze"]
+    cmd = [sys.executable, *how, *args]
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
 
 
@@ -232,13 +243,14 @@ def test_a_long_pose_file_read_in_a_child_gives_the_same_outputs(tmp_path: Path)
     assert poses.stat().st_size >= READ_IN_CHILD_BYTES
     models = ["--grasped", str(g), "--environment", str(e)]
     runs = {}
-    for jobs in ("1", "auto"):
-        out = tmp_path / f"out-{jobs}"
-        run = _analyze([str(poses), "--out", str(out), "--json", "--jobs", jobs, *models])
+    for jobs, child in (("1", False), ("auto", False), ("auto", True)):
+        out = tmp_path / f"out-{jobs}-{child}"
+        args = [str(poses), "--out", str(out), "--json", "--jobs", jobs, *models]
+        run = _analyze(args, task_in_child=child)
         assert run.returncode == 0, run.stderr[-2000:]
         files = {n: (out / n).read_bytes() for n in ("task.json", "frames.csv", "report.html")}
-        runs[jobs] = (run.stdout.replace(str(out), "OUT"), files)
-    assert runs["1"] == runs["auto"]
+        runs[jobs, child] = (run.stdout.replace(str(out), "OUT"), files)
+    assert runs["1", False] == runs["auto", False] == runs["auto", True]
     # a bad long file: the same error from the child as from this process
     bad = tmp_path / "bad.csv"
     bad.write_text("t,x,y,z,qw,qx,qy,qz\n" + "0,1,2,3,1,0,0,0\n" * 8000 + "1,nan?,2\n")

@@ -404,4 +404,5 @@ def _run(
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
         on_task=partial(print_result, rec, as_json=args.json),  # before the plot is waited for
+        jobs=args.jobs,
     )
