@@ -312,7 +312,11 @@ def _read_poses_and_models(
 
     with warnings_to_stderr("apo analyze"):
         dem = poses.load_demonstration(
-            demo, units=args.units, grasped=args.grasped, environment=args.environment
+            demo,
+            units=args.units,
+            grasped=args.grasped,
+            environment=args.environment,
+            camera_poses=False,  # not needed: X_EG only
         )
     G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
     plain = SimpleNamespace(times=dem.times, X_EG=dem.X_EG, units=getattr(dem, "units", None))
