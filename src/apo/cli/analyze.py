@@ -275,8 +275,8 @@ def _load_models(
 
 #: Pose files from this size (bytes; about 700 frames) are read in a forked child while the
 #: stages are imported (:func:`_read_inputs`). Below it, reading the file and the models costs
-#: about as much as the fork and the pages it copies (0.1 G instructions of the 41 frames'
-#: 2.2 G were moved off this process, against some 2,600 more page faults here).
+#: about as much as the fork and the pages it copies (72 M instructions of the 41 frames'
+#: 1,529 M were moved off this process, against some 2,600 more page faults here).
 READ_IN_CHILD_BYTES = 100_000
 
 
