@@ -373,3 +373,26 @@ def test_pose_csv_read_in_chunks_is_the_careful_read(tmp_path, monkeypatch) -> N
     }
     for what, (_p, msgs) in _errors_in_chunks(tmp_path, "bad.csv", bad, monkeypatch).items():
         assert msgs[0] == msgs[1] and "bad.csv" in msgs[0], what
+
+
+def test_contact_elements_have_slots_and_round_trip() -> None:
+    """A task of thousands of states places thousands of elements: no ``__dict__`` each,
+    and they still copy, pickle (the worker processes) and ``replace`` with every field."""
+    import copy
+    import dataclasses
+    import pickle
+
+    from apo.contact import ContactElement, ContactKind
+    from apo.dof import ContactPoint
+
+    el = ContactElement("EV", ("e", 4), ("v", 1), np.array([1.0, 2, 3]), np.eye(3)[:2])
+    assert not hasattr(el, "__dict__") and not hasattr(
+        ContactPoint(el.point, el.normals), "__dict__"
+    )
+    for other in (pickle.loads(pickle.dumps(el)), copy.deepcopy(el), copy.copy(el)):
+        assert other.key == el.key and other.kind is ContactKind.EV and other.singular
+        assert np.array_equal(other.point, el.point) and np.array_equal(other.normals, el.normals)
+    moved = dataclasses.replace(el, point=np.zeros(3))
+    assert moved.key == el.key and not moved.point.any() and moved.normals is el.normals
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        el.kind = ContactKind.VF  # type: ignore[misc]
