@@ -396,3 +396,18 @@ def test_contact_elements_have_slots_and_round_trip() -> None:
     assert moved.key == el.key and not moved.point.any() and moved.normals is el.normals
     with pytest.raises(dataclasses.FrozenInstanceError):
         el.kind = ContactKind.VF  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 1 << 18])
+def test_report_data_escaped_in_chunks_is_the_whole_text(monkeypatch, chunk: int) -> None:
+    """The report's data (all but the task) is encoded and escaped a chunk at a time: the
+    bytes of the whole text encoded and escaped at once (non-ASCII, ``<>&`` included)."""
+    import apo.report.html as html
+
+    monkeypatch.setattr(html, "SCRIPT_CHUNK_CHARS", chunk)
+    rng = np.random.default_rng(chunk)
+    data = {"schema": "x", "n": [_random_value(rng, 0) for _ in range(40)], "t": "é</&>\u2028"}
+    rest = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    want = html._escape_script((rest[:-1] + ',"task":').encode("utf-8"))
+    pieces = list(html._script_pieces({**data, "task": {}}, '{"a": 1}'))
+    assert b"".join(pieces[:-2]) == want and pieces[-2:] == [b'{"a": 1}', b"}"]
