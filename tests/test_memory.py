@@ -220,12 +220,14 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
     frame (the per-frame arrays), not the working arrays of whole stages or per-state copies.
 
     Traced by ``tracemalloc`` in a fresh interpreter, blocks of 256 frames (64 states) so
-    that both lengths fill their blocks. Measured when written: 2,231 bytes per frame on
-    distinct frames (the poses, the corrected poses, labels and flags, and mostly the
-    distances of the observed elements while segmenting, 8 bytes each), 578 on a short
-    demonstration repeated (each of its states a few frames long; 731 before the states at
-    a pose met again shared their pose and elements); before the block-wise stages and the
-    streamed task.json (d68de35) 2,493 and 2,485.
+    that both lengths fill their blocks. Measured (session 5, docs/recognition.md "Session
+    5: memory"): 1,005-1,012 bytes per frame on distinct frames (the poses, the corrected
+    poses, the costs of the analysed candidates, labels and flags, the observed states'
+    records), 578 on a short demonstration repeated (each of its states a few frames long).
+    Before: 2,231 on distinct frames while every element's distances at every frame were
+    kept between the segmentation passes (8 bytes each), 731 on the repeated one before the
+    states at a pose met again shared their pose and elements; before the block-wise stages
+    and the streamed task.json (d68de35) 2,493 and 2,485.
     """
     import subprocess
     import sys
@@ -235,7 +237,7 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
         capture_output=True, text=True, check=True,
     ).stdout  # fmt: skip
     per_frame = {k: float(v) for k, v in (line.split() for line in out.strip().splitlines())}
-    bound = {"distinct": 2400, "repeated": 700}
+    bound = {"distinct": 1200, "repeated": 650}
     for kind, limit in bound.items():
         assert per_frame[kind] < limit, (kind, per_frame)
 
