@@ -107,10 +107,31 @@ def register(subparsers: Any) -> None:
         help="do not write dof.png (the default; kept for scripts written before --plot)",
     )
     p.add_argument("--no-report", action="store_true", help="do not write report.html (apo report)")
+    p.add_argument(
+        "--jobs",
+        type=_jobs,
+        default=None,
+        metavar="N",
+        help="processes for the contact search and pose correction of long demonstrations "
+        "(default: auto, the available cores; 1: one process; the results are the same)",
+    )
     from apo.cli.track import add_tracking_options
 
     add_tracking_options(p)
     p.set_defaults(func=run)
+
+
+def _jobs(text: str) -> int | None:
+    """``--jobs``: a positive integer, or ``auto``."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer or auto, got {text!r}")
+    return value
 
 
 def parse_noise(text: str | None, unit: float) -> tuple[float, float] | None:
@@ -150,6 +171,7 @@ def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, 
         if not bars and time.monotonic() - start >= PROGRESS_DELAY:
             from tqdm import tqdm
 
+            tqdm.monitor_interval = 0  # no monitor thread: later stages may fork (workers)
             bars.append(tqdm(total=n, desc=desc, unit="frame", file=sys.stderr, leave=False))
         if bars:
             bars[0].update(done - bars[0].n)
@@ -318,6 +340,7 @@ def _run(
             units=units,
             models=(model_ref(gp, out), model_ref(ep, out)),
             source=demo.name,
+            jobs=args.jobs,
         )
     finally:
         close()

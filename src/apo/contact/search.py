@@ -197,8 +197,39 @@ class ContactFinder:
         [[0, 1, 0], [0, 1]]
         """
         X = _check_poses(X_EG_seq)
+        return self.labels_of_codes(*self._codes(X, progress), len(X))
+
+    @property
+    def block_frames(self) -> int:
+        """Frames per block of :meth:`find_labels` (about ``_BATCH_PRIMITIVES`` primitives).
+
+        The blocks start at multiples of this: :meth:`element_codes` of a slice of poses
+        starting at such a multiple computes the same blocks as :meth:`find_labels` of all.
+        """
         g, e = self._g, self._e
-        step = max(1, _BATCH_PRIMITIVES // (g.nv + e.nv + g.ne))
+        return max(1, _BATCH_PRIMITIVES // (g.nv + e.nv + g.ne))
+
+    def element_codes(
+        self,
+        X_EG_seq: Iterable[npt.ArrayLike] | npt.ArrayLike,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> tuple[IntArray, IntArray]:
+        """``(frame, code)`` of every contact element at the poses, block by block.
+
+        What :meth:`find_labels` labels the poses by: rows sorted by frame (an index into
+        the poses), then by the element's code (its kind and the two features); the rows of
+        a slice of poses starting at a multiple of :attr:`block_frames`, with the frames
+        moved by the slice's start, are those of the whole (:meth:`labels_of_codes` of the
+        concatenated rows gives :meth:`find_labels`).
+        """
+        return self._codes(_check_poses(X_EG_seq), progress)
+
+    def _codes(
+        self, X: FloatArray, progress: Callable[[int, int], None] | None
+    ) -> tuple[IntArray, IntArray]:
+        g, e = self._g, self._e
+        step = self.block_frames
         frames: list[IntArray] = []
         codes: list[IntArray] = []
         for a in range(0, len(X), step):
@@ -209,7 +240,18 @@ class ContactFinder:
                 progress(min(a + step, len(X)), len(X))
         if not frames:
             return _EMPTY_I, _EMPTY_I
-        return _group_sets(np.concatenate(frames), np.concatenate(codes), len(X))
+        return np.concatenate(frames), np.concatenate(codes)
+
+    @staticmethod
+    def labels_of_codes(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntArray]:
+        """Labels of ``n`` poses by their sets of element codes (:meth:`element_codes`' rows).
+
+        Returns each pose's label (0, 1, ... in order of first appearance) and the first
+        pose of each label, as :meth:`find_labels`.
+        """
+        if n == 0:
+            return _EMPTY_I, _EMPTY_I
+        return _group_sets(frame, code, n)
 
     # ---------------------------------------------------------------------------------------
 

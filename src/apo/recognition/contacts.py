@@ -9,18 +9,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
+from itertools import pairwise
 
 import numpy as np
 import numpy.typing as npt
 
-from apo.contact import ContactState
+from apo.contact import ContactFinder, ContactState
 from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
 from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
+from apo.recognition.workers import run_parts, workers_for
 
 __all__ = [
     "Observations",
     "distinct_poses",
     "group_states",
+    "label_frames",
     "near_signatures",
     "observe",
     "observed_states",
@@ -50,7 +54,11 @@ class Observations:
 
 
 def observe(
-    scene: Scene, *, memoize: bool = False, progress: Progress | None = None
+    scene: Scene,
+    *,
+    memoize: bool = False,
+    progress: Progress | None = None,
+    jobs: int | None = 1,
 ) -> Observations:
     """Find the contact state at every frame and group the frames by distinct state.
 
@@ -59,7 +67,8 @@ def observe(
     and touching pairs), and the whole state is found at the first frame of each label
     only: the same observations as :func:`group_states` of :func:`observed_states`, whose
     states of later frames of a label would be dropped. A pose that repeats an earlier
-    one bit for bit is searched once (:func:`distinct_poses`).
+    one bit for bit is searched once (:func:`distinct_poses`). ``jobs``: processes the
+    search of the distinct poses is split over (:func:`label_frames`).
     """
     if memoize:
         return group_states(observed_states(scene, memoize=True, progress=progress))
@@ -71,12 +80,47 @@ def observe(
         if progress is not None:
             progress(n if done >= m else done * n // m, n)
 
-    labels, once = scene.finder.find_labels(Xu, progress=tick)
+    labels, once = label_frames(scene.finder, Xu, progress=tick, jobs=jobs)
     states = scene.finder.find_batch(Xu[once])
     keys = [s.key for s in states]
     if len(set(keys)) < len(keys):  # pragma: no cover - find_labels is find_batch's keys
         return group_states([states[j] for j in labels[inverse].tolist()])
     return Observations(labels[inverse] if m < n else labels, keys, states)
+
+
+def label_frames(
+    finder: ContactFinder,
+    X: FloatArray,
+    *,
+    progress: Progress | None = None,
+    jobs: int | None = 1,
+) -> tuple[IntArray, IntArray]:
+    """``finder.find_labels(X)``, its blocks of frames split over ``jobs`` processes.
+
+    Each process searches a run of whole blocks (:attr:`ContactFinder.block_frames`: the
+    same blocks as one process searches) and hands back its ``(frame, code)`` rows
+    (:meth:`ContactFinder.element_codes`); the rows in order are labelled as
+    :meth:`ContactFinder.find_labels` labels them, so the labels are the same bit for bit.
+    ``jobs``: None for auto (:func:`apo.recognition.workers.workers_for`).
+    """
+    step = finder.block_frames
+    n_blocks = -(-len(X) // step)
+    k = min(workers_for(jobs, len(X)), n_blocks)
+    if k <= 1:
+        return finder.find_labels(X, progress=progress)
+    cuts = [step * (n_blocks * i // k) for i in range(k)] + [len(X)]
+    head = cuts[1]
+
+    def mine(done: int, _total: int) -> None:
+        if progress is not None:
+            progress(done * len(X) // head, len(X))
+
+    parts = [partial(finder.element_codes, X[:head], progress=mine)]
+    parts += [partial(finder.element_codes, X[a:b]) for a, b in pairwise(cuts[1:])]
+    rows = run_parts(parts)
+    frame = np.concatenate([f + a for (f, _c), a in zip(rows, cuts, strict=False)])
+    code = np.concatenate([c for _f, c in rows])
+    return finder.labels_of_codes(frame, code, len(X))
 
 
 def observed_states(

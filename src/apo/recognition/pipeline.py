@@ -76,6 +76,7 @@ def recognize(
     memoize: bool = False,
     noise: tuple[float, float] | None = None,
     floor_share: float | None = None,
+    jobs: int | None = None,
 ) -> TaskModel:
     """Recognise a demonstration into a :class:`~apo.task.TaskModel`.
 
@@ -113,6 +114,11 @@ def recognize(
         Least threshold, as a share of :func:`default_threshold`, when the threshold follows
         the noise; default ``NOISE_FLOOR_SHARE`` (pose files), ``TRACKED_FLOOR_SHARE`` for poses
         tracked from depth frames (their smooth bias does not show in the noise estimate).
+    jobs : int, optional
+        Processes the contact search and the correction of the distinct frames are split
+        over (forked for those stages, :mod:`apo.recognition.workers`); default: auto (the
+        available cores, on long demonstrations only); 1: one process. The result is the
+        same bit for bit whatever ``jobs``.
 
     Returns
     -------
@@ -141,6 +147,7 @@ def recognize(
         memoize=memoize,
         noise=noise,
         floor_share=floor_share,
+        jobs=jobs,
     ).task
 
 
@@ -159,6 +166,7 @@ def recognize_frames(
     memoize: bool = False,
     noise: tuple[float, float] | None = None,
     floor_share: float | None = None,
+    jobs: int | None = None,
 ) -> Recognition:
     """Recognise a demonstration; return the task model and per-frame diagnostics.
 
@@ -175,7 +183,7 @@ def recognize_frames(
     once = partial(
         _recognise_once, grasped, environment, t, X, costs=costs or SegmentationCosts(),
         memoize=memoize, progress=progress, units=units, models=models, source=source,
-        floor_share=floor_share,
+        floor_share=floor_share, jobs=jobs,
     )  # fmt: skip
     rec = once(threshold, est)
     if threshold is not None or noise is not None:
@@ -249,12 +257,13 @@ def _recognise_once(
     models: tuple[ModelRef, ModelRef] | None,
     source: str,
     floor_share: float | None = None,
+    jobs: int | None = None,
 ) -> Recognition:
     """One pass of the stages at one threshold and noise level."""
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     scene = make_scene(grasped, environment, X, threshold, costs, est, floor_share)
-    observed = observe(scene, memoize=memoize, progress=progress)
+    observed = observe(scene, memoize=memoize, progress=progress, jobs=jobs)
     tm["contacts"] = time.perf_counter() - t0
     dists = DistanceCache(grasped, environment, X, scene.unit)
     path0, own = _timed(tm, "segmentation", first_pass, scene, observed, dists)
@@ -264,8 +273,9 @@ def _recognise_once(
     path, obs_c = seg.path, seg.observed
     chosen = an.states(observed)
     corrected = _timed(
-        tm, "correction", correct_by_label, grasped, environment, X, chosen, path, scene.unit
-    )
+        tm, "correction", partial(correct_by_label, jobs=jobs), grasped, environment, X,
+        chosen, path, scene.unit,
+    )  # fmt: skip
     t4 = time.perf_counter()
     task = build_task(
         scene, t, path, obs_c, corrected, an, seg, units=units, models=models, source=source
