@@ -266,3 +266,110 @@ def test_states_at_a_pose_met_again_share_their_records(seed: int = 6) -> None:
         for a, b in zip(s.elements, again, strict=True):
             assert a.key == b.key and np.array_equal(a.point, b.point)
             assert np.array_equal(a.normals, b.normals)
+
+
+def _pose_list_variants(tmp: Path) -> list[Path]:
+    """Pose lists of random variants written with blank lines, CR LF, no final newline."""
+    import apo.io.poses as poses
+
+    out = []
+    for seed in (12, 33):
+        demo = add_noise(random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, seed=seed)
+        models = (tmp / "g.stl", tmp / "e.stl")
+        p = poses.write_pose_list(tmp / f"v{seed}.pose.list", demo.X_EG, units="mm", models=models)
+        text = p.read_text()
+        out.append(p)
+        odd = tmp / f"odd{seed}.pose.list"  # more blank lines, spaces, CR LF, no last newline
+        odd.write_bytes(text.replace("\n\n", "\n  \n\n").replace("\n", "\r\n").rstrip().encode())
+        out.append(odd)
+    return out
+
+
+def test_pose_list_read_in_chunks_is_the_whole_text_read(tmp_path, monkeypatch) -> None:
+    """The pose list is split into lines a chunk at a time: the same poses, line numbers and
+    raw poses as all its lines at once, in chunks of any size; without the raw poses on
+    request; and every error is the whole-text reader's."""
+    import apo.io.poses as poses
+    from apo.errors import InputFormatError
+
+    for path in _pose_list_variants(tmp_path):
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
+        models, x_eg, first, tags, x_c = poses._pose_list_whole(path, lines, 1e-3)
+        for chunk in (1, 13, 200, 1 << 20):
+            monkeypatch.setattr(poses, "POSE_CHUNK_CHARS", chunk)
+            monkeypatch.setattr(poses, "POSE_HEADER_CHARS", 2000)
+            got = poses._pose_list_in_blocks(path, path.read_text(encoding="utf-8-sig"), 1e-3, True)
+            assert got is not None
+            assert got[0] == models
+            for a, b in zip(got[1:], (x_eg, first, tags, x_c), strict=True):
+                assert np.array_equal(a, b)
+            dem = poses.read_pose_list(path, camera_poses=False)
+            assert dem.X_C is None and dem.tags is None
+            assert np.array_equal(dem.X_EG, x_eg) and np.array_equal(dem.lines, first)
+    text = _pose_list_variants(tmp_path)[0].read_text()
+    rows = text.split("\n")
+    j = next(k for k in range(40, len(rows)) if rows[k].strip())  # a pose line
+    bad = {
+        "a bad number": "\n".join([*rows[:j], rows[j].replace(" ", " x", 1), *rows[j + 1 :]]),
+        "a missing line": "\n".join(rows[:j] + rows[j + 1 :]),
+        "a wrong count": text.replace("No of Scenes: ", "No of Scenes: 1"),
+        "no scenes": "\n".join(rows[:5]),
+    }
+    monkeypatch.setattr(poses, "POSE_HEADER_CHARS", 2000)
+    for what, (p, msgs) in _errors_in_chunks(tmp_path, "bad.pose.list", bad, monkeypatch).items():
+        with pytest.raises(InputFormatError) as whole:
+            poses._pose_list_whole(p, p.read_text().splitlines(), 1e-3)
+        assert msgs == [str(whole.value)] * 2, what
+
+
+def _errors_in_chunks(
+    tmp: Path, name: str, bodies: dict[str, str], monkeypatch: Any
+) -> dict[str, tuple[Path, list[str]]]:
+    """The messages of reading each bad file ``name`` in chunks of 7 and of 2**20 characters."""
+    import apo.io.poses as poses
+    from apo.errors import InputFormatError
+
+    out = {}
+    for what, body in bodies.items():
+        p = tmp / what.replace(" ", "_") / name
+        p.parent.mkdir()
+        p.write_text(body)
+        msgs = []
+        for chunk in (7, 1 << 20):
+            monkeypatch.setattr(poses, "POSE_CHUNK_CHARS", chunk)
+            with pytest.raises(InputFormatError) as err:
+                poses.load_demonstration(p)
+            msgs.append(str(err.value))
+        out[what] = (p, msgs)
+    return out
+
+
+def test_pose_csv_read_in_chunks_is_the_careful_read(tmp_path, monkeypatch) -> None:
+    """A plain pose CSV is parsed a chunk of lines at a time: the table and line numbers of
+    the careful (row by row) reader, in chunks of any size; every error is the same."""
+    import apo.io.poses as poses
+
+    demo = add_noise(random_variant(21), sigma_mm=1.0, sigma_deg=1.0, seed=21)
+    plain = poses.write_pose_csv(tmp_path / "d.csv", demo.times, demo.X_EG, units="mm")
+    text = plain.read_text()
+    odd = tmp_path / "odd.csv"  # blank lines, CR LF, no header, no final newline
+    odd.write_bytes(("\n\n" + text.split("\n", 1)[1].replace("\n", "\r\n\r\n")).rstrip().encode())
+    for path in (plain, odd):
+        names, rows = poses._csv_header(path, poses._csv_rows(path))
+        table = poses._csv_table(rows, len(names))
+        assert table is not None
+        for chunk in (1, 13, 200, 1 << 20):
+            monkeypatch.setattr(poses, "POSE_CHUNK_CHARS", chunk)
+            got = poses._csv_fast(path)
+            assert got is not None and got[0] == names
+            assert np.array_equal(got[1], table)
+            assert got[2].tolist() == [i for i, _f in rows]
+    rows = text.split("\n")
+    bad = {
+        "a bad number": "\n".join([*rows[:30], rows[30].replace(",", ",x", 1), *rows[31:]]),
+        "a short row": "\n".join([*rows[:30], rows[30].rsplit(",", 1)[0], *rows[31:]]),
+        "time back": "\n".join([*rows[:30], rows[32], rows[31], *rows[33:]]),
+        "header only": rows[0],
+    }
+    for what, (_p, msgs) in _errors_in_chunks(tmp_path, "bad.csv", bad, monkeypatch).items():
+        assert msgs[0] == msgs[1] and "bad.csv" in msgs[0], what

@@ -98,3 +98,41 @@ def test_block_wise_recognition_equals_whole_sequence(monkeypatch, seed: int) ->
     assert blocks[1] == whole[1]
     assert blocks[1].count("\n") == len(demo.X_EG) + 1
     assert np.array_equal(blocks[2], whole[2])
+
+
+@pytest.mark.parametrize("seed", [2, 9])
+def test_streamed_distances_give_the_costs_of_every_distance_kept(monkeypatch, seed: int) -> None:
+    """The two passes compute the element distances a span at a time and keep only the
+    observed elements' between them: the costs of both passes are those of every element's
+    distances at every frame (one ``DistanceCache`` over the whole sequence), bit for bit."""
+    from apo.recognition import analysis, costs, pipeline
+    from apo.recognition.contacts import observe
+    from apo.recognition.distances import DistanceCache, StreamedDistances
+    from apo.recognition.types import SegmentationCosts
+
+    demo = synthetic.add_noise(
+        synthetic.random_variant(seed), sigma_mm=1.5, sigma_deg=1.5, outlier_rate=0.02, seed=seed
+    )
+    G, E, X = demo.grasped, demo.environment, demo.X_EG
+    est = pipeline.pose_noise(G, X, None)
+    scene = pipeline.make_scene(G, E, X, None, SegmentationCosts(), est)
+    observed = observe(scene)
+    monkeypatch.setattr(segmentation, "BLOCK_FRAMES", 7)  # spans of 28 frames
+    dists = StreamedDistances(G, E, X, scene.unit)
+    path0, own, seen = segmentation.first_pass(scene, observed, dists)
+    an = analysis.analyse_needed(scene, observed, own, path0)
+    seg = segmentation.segment(scene, an, dists, observed, seen)
+    whole = DistanceCache(G, E, X, scene.unit)
+    labels, w = observed.labels, scene.costs
+    enc = costs.enclosed_frames(observed.keys, labels, scene.outliers)
+    lay = costs.EmissionLayout(observed.keys, [s.touching for s in observed.states])
+    e1 = costs.emission_costs(whole, lay, labels, w, enc)
+    assert np.array_equal(own, e1[np.arange(len(X)), labels])
+    states = an.states(observed)
+    lay2 = costs.EmissionLayout(an.keys, [s.touching for s in states])
+    e2 = costs.candidate_costs(whole, lay2, an.candidates, an.bridges, labels, w, enclosed=enc)
+    e2 = e2[:, seg.columns]
+    e2 = np.where(scene.outliers[:, None] & np.isfinite(e2), 0.0, e2)
+    assert np.array_equal(seg.costs, e2)
+    assert len(seen.values) == sum(len(observed.keys[k]) for k in labels.tolist())
+    assert len(an.candidates) > len([c for c in an.candidates if c is not None])  # some unneeded

@@ -313,7 +313,11 @@ def _run(
 
         with warnings_to_stderr("apo analyze"):
             dem = poses.load_demonstration(
-                demo, units=args.units, grasped=args.grasped, environment=args.environment
+                demo,
+                units=args.units,
+                grasped=args.grasped,
+                environment=args.environment,
+                camera_poses=False,  # not needed: X_EG only
             )
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
         if getattr(dem, "X_C", None) is not None:  # the camera poses: not needed any more

@@ -44,7 +44,7 @@ import io
 import math
 import re
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -230,7 +230,11 @@ def _model_path(text: str, base: Path) -> Path:
 
 
 def read_pose_list(
-    path: str | Path, *, units: str = DEFAULT_UNITS, fps: float | None = None
+    path: str | Path,
+    *,
+    units: str = DEFAULT_UNITS,
+    fps: float | None = None,
+    camera_poses: bool = True,
 ) -> Demonstration:
     """Read the first author's ``.pose.list`` (camera-frame poses of every model per scene).
 
@@ -242,6 +246,9 @@ def read_pose_list(
         Length unit of the positions in the file (the author's data: mm).
     fps : float, optional
         Frame rate giving ``times = k / fps`` (the format has no time stamps); 1 if None.
+    camera_poses : bool
+        Keep the raw poses and ids (``X_C``, ``tags``); False: None (``X_EG`` only, a
+        third of the memory).
 
     Returns
     -------
@@ -263,19 +270,13 @@ def read_pose_list(
     scale = _scale(units, str(path))
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise InputFormatError(f"{path}: fps must be positive, got {fps}")
-    lines = _read_text(path).splitlines()
-    models, n_scenes, i = _pose_list_header(path, lines)
-    scenes = _scene_lines(path, lines, i, n_scenes)
-    n = len(scenes)
-    first = np.array([scene[0] + 1 for scene in scenes], dtype=np.int64)
-    parsed = _scene_poses_fast(lines, scenes, len(models), scale)
-    if parsed is None:  # something is wrong: the line-by-line reader names it
-        parsed = _scene_poses(lines, scenes, len(models), scale, lambda j: _where(path, j))
-    tags, x_c = parsed
-    x_eg = np.empty((n, 4, 4))
-    for a in range(0, n, POSE_BLOCK):  # inv(X_CE) @ X_CG, a block at a time
-        b = min(n, a + POSE_BLOCK)
-        x_eg[a:b] = np.einsum("nij,njk->nik", _invert_all(x_c[a:b, 1]), x_c[a:b, 0])
+    text = _read_text(path)
+    read = _pose_list_in_blocks(path, text, scale, camera_poses)
+    if read is None:  # something is wrong: the whole-text reader names it
+        read = _pose_list_whole(path, text.splitlines(), scale)
+    del text
+    models, x_eg, first, tags, x_c = read
+    n = len(x_eg)
     rate = 1.0 if fps is None else float(fps)
     return Demonstration(
         times=np.arange(n, dtype=np.float64) / rate,
@@ -285,11 +286,153 @@ def read_pose_list(
         grasped_path=models[0],
         environment_path=models[1],
         model_paths=tuple(models),
-        X_C=x_c,
-        tags=tags,
+        X_C=x_c if camera_poses else None,
+        tags=tags if camera_poses else None,
         lines=first,
         fps=rate,
     )
+
+
+_PoseList = tuple[list[Path], FloatArray, IntArray, IntArray | None, FloatArray | None]
+
+
+def _pose_list_whole(path: Path, lines: list[str], scale: float) -> _PoseList:
+    """Read a pose list from all its lines at once; raise on the first problem, naming it."""
+    models, n_scenes, i = _pose_list_header(path, lines)
+    scenes = _scene_lines(path, lines, i, n_scenes)
+    first = np.array([scene[0] + 1 for scene in scenes], dtype=np.int64)
+    parsed = _scene_poses_fast(lines, scenes, len(models), scale)
+    if parsed is None:  # something is wrong: the line-by-line reader names it
+        parsed = _scene_poses(lines, scenes, len(models), scale, lambda j: _where(path, j))
+    tags, x_c = parsed
+    return models, _poses_in_e(x_c), first, tags, x_c
+
+
+def _poses_in_e(x_c: FloatArray) -> FloatArray:
+    """``inv(X_CE) @ X_CG`` of scenes ``x_c`` (n, models, 4, 4), a block at a time."""
+    n = len(x_c)
+    x_eg = np.empty((n, 4, 4))
+    for a in range(0, n, POSE_BLOCK):
+        b = min(n, a + POSE_BLOCK)
+        x_eg[a:b] = np.einsum("nij,njk->nik", _invert_all(x_c[a:b, 1]), x_c[a:b, 0])
+    return x_eg
+
+
+#: Characters of a pose list split into lines at a time (:func:`_pose_list_in_blocks`).
+POSE_CHUNK_CHARS = 1 << 18
+
+
+def _line_chunks(text: str, size: int, first: int = 0) -> Iterator[list[str]]:
+    """Yield the lines of ``text`` (as ``text.splitlines()``), ``size`` characters at a time.
+
+    The first chunk has at least ``first`` characters (the header). Each chunk ends just
+    after a newline, which ends a line wherever the text is cut.
+    """
+    for chunk in _text_chunks(text, size, first):
+        yield chunk.splitlines()
+
+
+#: The least length of the first chunk of a pose list, where its header is read.
+POSE_HEADER_CHARS = 1 << 16
+
+
+def _pose_list_in_blocks(
+    path: Path, text: str, scale: float, camera_poses: bool
+) -> _PoseList | None:
+    """Read a valid pose list a chunk of lines at a time; None at anything unusual.
+
+    No Python string is kept per line: each chunk's complete scenes are parsed by numpy and
+    their poses in E written into arrays of the announced number of scenes. A file with
+    any problem (or a header longer than ``POSE_HEADER_CHARS``) gives None: :func:`_pose_list_whole`
+    then reads it and names the problem as it always did.
+    """
+    chunks = _line_chunks(text, POSE_CHUNK_CHARS, POSE_HEADER_CHARS)
+    head = next(chunks, [])
+    try:
+        models, n_scenes, i = _pose_list_header(path, head)
+    except InputFormatError:
+        return None
+    m = len(models)
+    if not 0 < n_scenes * m <= text.count("\n") + 1:
+        return None
+    out = _SceneArrays(n_scenes, m, camera_poses)
+    scenes = _Scenes(m)
+    done = scenes.take(head[i:], i) if i < len(head) else ([], [])
+    offset = len(head)  # index of the next chunk's first line in the whole text
+    del head
+    while scenes.ok and out.add(done, scale):
+        lines = next(chunks, None)
+        if lines is None:
+            break
+        done = scenes.take(lines, offset)
+        offset += len(lines)
+        del lines  # one chunk's lines at a time
+    else:
+        return None
+    done = scenes.take([], offset, last=True)  # the last scene ends with the text
+    if not (scenes.ok and out.add(done, scale)) or out.done != n_scenes:
+        return None
+    return models, out.x_eg, out.first, out.tags, out.x_c
+
+
+class _Scenes:
+    """Scenes (runs of non-blank lines) of a text read a chunk of lines at a time."""
+
+    def __init__(self, n_models: int) -> None:
+        self.m = n_models
+        self.open: list[str] = []  # the lines of the scene that the last chunk ended in
+        self.ok = True  # every complete scene has one line per model
+
+    def take(
+        self, lines: list[str], offset: int, last: bool = False
+    ) -> tuple[list[str], list[int]]:
+        """Return the lines and first lines (numbered from 1) of the scenes that end here.
+
+        ``lines`` start at line ``offset`` (0-based) of the text; a scene running to their
+        end is kept open for the next chunk, unless ``last``.
+        """
+        kept = [j for j, line in enumerate(lines) if line.strip()]
+        rows = self.open + [lines[j] for j in kept]
+        if not rows:
+            return [], []
+        # line indices relative to this chunk: the open scene's lines end just before it
+        at = np.concatenate([np.arange(-len(self.open), 0), np.array(kept, dtype=np.int64)])
+        starts = np.flatnonzero(np.diff(at, prepend=at[0] - 2) != 1)
+        cut = len(rows)
+        if not last and at[-1] == len(lines) - 1:  # the last scene may go on
+            cut = int(starts[-1])
+            starts = starts[:-1]
+        self.open = rows[cut:]
+        self.ok &= bool(np.all(np.diff(np.append(starts, cut)) == self.m))
+        return rows[:cut], (offset + at[starts] + 1).tolist()
+
+
+class _SceneArrays:
+    """The poses in E (and optionally the raw poses and ids) of the scenes read so far."""
+
+    def __init__(self, n: int, n_models: int, camera_poses: bool) -> None:
+        self.m, self.done = n_models, 0
+        self.x_eg = np.empty((n, 4, 4))
+        self.first = np.empty(n, dtype=np.int64)
+        self.x_c = np.empty((n, n_models, 4, 4)) if camera_poses else None
+        self.tags = np.empty((n, n_models), dtype=np.int64) if camera_poses else None
+
+    def add(self, scenes: tuple[list[str], list[int]], scale: float) -> bool:
+        """Parse and store complete scenes; False if they do not parse or are too many."""
+        rows, firsts = scenes
+        a, k = self.done, len(firsts)
+        if not k:
+            return True
+        parsed = _rows_poses(rows, k, self.m, scale) if a + k <= len(self.first) else None
+        if parsed is None:
+            return False
+        tags, x = parsed
+        self.first[a : a + k] = firsts
+        self.x_eg[a : a + k] = _poses_in_e(x)
+        if self.x_c is not None and self.tags is not None:
+            self.x_c[a : a + k], self.tags[a : a + k] = x, tags
+        self.done += k
+        return True
 
 
 def _where(path: Path, i: int) -> str:
@@ -398,7 +541,13 @@ def _scene_poses_fast(
     """
     if any(len(scene) != n_models for scene in scenes):
         return None
-    rows = [lines[j] for scene in scenes for j in scene]
+    return _rows_poses([lines[j] for scene in scenes for j in scene], len(scenes), n_models, scale)
+
+
+def _rows_poses(
+    rows: list[str], n: int, n_models: int, scale: float
+) -> tuple[IntArray, FloatArray] | None:
+    """Parse ``n`` scenes' pose lines ``rows`` at once (numpy); None if anything is off."""
     try:  # numpy's C parser: no Python string per number (correctly rounded, as float())
         table = np.loadtxt(rows, dtype=np.float64, comments=None, ndmin=2)
     except ValueError:  # ragged rows or a token that is not a number
@@ -412,7 +561,6 @@ def _scene_poses_fast(
     for a in range(0, len(table), POSE_BLOCK):  # working arrays of one block
         if not _axis_angle_poses(table[a : a + POSE_BLOCK], scale, x[a : a + POSE_BLOCK]):
             return None
-    n = len(scenes)
     return tags.astype(np.int64).reshape(n, n_models), x.reshape(n, n_models, 4, 4)
 
 
@@ -517,8 +665,10 @@ def read_pose_csv(path: str | Path, *, units: str) -> Demonstration:
     q = table[:, 4:8]
     _warn_quaternion_norms(path, np.linalg.norm(q, axis=1), lines)
     x_eg = np.zeros((len(table), 4, 4))
-    x_eg[:, :3, :3] = matrices_from_quaternions(q)
-    x_eg[:, :3, 3] = table[:, 1:4] * scale
+    for a in range(0, len(table), POSE_BLOCK):  # the working arrays of one block
+        b = a + POSE_BLOCK
+        x_eg[a:b, :3, :3] = matrices_from_quaternions(q[a:b])
+        x_eg[a:b, :3, 3] = table[a:b, 1:4] * scale
     x_eg[:, 3, 3] = 1.0
     return Demonstration(
         times=table[:, 0].copy(),
@@ -537,31 +687,91 @@ def _csv_fast(path: Path) -> tuple[list[str], FloatArray, IntArray] | None:
     lines are records and fields are split at every comma, as :func:`_csv_rows` splits
     them), every data row of the header's width, and every check of :func:`_csv_table`
     passed. Numbers are parsed by ``np.loadtxt`` (correctly rounded, as ``float``) without a
-    Python string per field: a 30,000-row file is read in a third of the time and memory.
-    Anything else (and every error) goes to the careful reader, which names the line.
+    Python string per field, a chunk of ``POSE_CHUNK_CHARS`` characters at a time (no
+    string is kept per line). Anything else (and every error) goes to the careful reader,
+    which names the line.
     """
-    text = _read_text(path).replace("\r\n", "\n")
-    if '"' in text or "#" in text or "\r" in text:
+    text = _read_text(path)
+    if '"' in text or "#" in text or text.count("\r") != text.count("\r\n"):
         return None
-    numbered = [
-        (i, line) for i, line in enumerate(text.split("\n"), start=1)
-        if line.replace(",", "").strip()
-    ]  # fmt: skip
-    if len(numbered) < 2:
+    out = _CsvTable(text.count("\n") + 1)
+    for chunk in _text_chunks(text, POSE_CHUNK_CHARS):
+        if not out.add(path, chunk.replace("\r\n", "\n")):
+            return None
+    del text
+    if out.names is None or out.n + out.header < 2:  # fewer than two lines not blank
         return None
-    head_line, head = numbered[0]
-    names, _rest = _csv_header(path, [(head_line, [f.strip() for f in head.split(",")]), (0, [])])
-    data = numbered[1:] if _rest[0][0] == 0 else numbered
-    try:
-        table = np.loadtxt([line for _i, line in data], delimiter=",", dtype=np.float64,
-                           comments=None, ndmin=2)  # fmt: skip
-    except ValueError:
-        return None
-    if table.shape != (len(data), len(names)) or not np.isfinite(table[:, :8]).all():
+    table, lines = out.table[: out.n], out.lines[: out.n]
+    if not np.isfinite(table[:, :8]).all():
         return None
     if np.any(np.linalg.norm(table[:, 4:8], axis=1) < 1e-9) or np.any(np.diff(table[:, 0]) <= 0):
         return None
-    return names, table, np.array([i for i, _line in data], dtype=np.int64)
+    return out.names, table, lines
+
+
+def _text_chunks(text: str, size: int, first: int = 0) -> Iterator[str]:
+    """Yield ``text`` about ``size`` characters at a time, each chunk ending after a newline.
+
+    The first chunk has at least ``first`` characters.
+    """
+    start, n = 0, len(text)
+    while start < n:
+        stop = text.find("\n", min(n, start + max(1, size, first if start == 0 else 0)) - 1)
+        stop = n if stop < 0 else stop + 1
+        yield text[start:stop]
+        start = stop
+
+
+class _CsvTable:
+    """The data rows of a plain CSV file, parsed a chunk of lines at a time."""
+
+    def __init__(self, most: int) -> None:
+        self.most = most  # rows at most: the file's lines
+        self.names: list[str] | None = None
+        self.header = False
+        self.head_line = 0
+        self.table = np.empty((0, 0))
+        self.lines = np.empty(most, dtype=np.int64)
+        self.n = 0  # data rows so far
+        self.lineno = 0  # lines so far
+
+    def add(self, path: Path, chunk: str) -> bool:
+        """Parse the next chunk of text (whole lines); False where numpy cannot read it."""
+        pieces = chunk.split("\n")
+        if chunk.endswith("\n"):
+            pieces.pop()  # the next chunk starts a new line
+        numbered = [
+            (i, line) for i, line in enumerate(pieces, start=self.lineno + 1)
+            if line.replace(",", "").strip()
+        ]  # fmt: skip
+        self.lineno += len(pieces)
+        if numbered and self.names is None:
+            head_line, head = numbered[0]
+            names, rest = _csv_header(
+                path, [(head_line, [f.strip() for f in head.split(",")]), (0, [])]
+            )
+            self.names, self.header = names, rest[0][0] == 0
+            self.table = np.empty((self.most, len(names)))
+            if self.header:
+                numbered = numbered[1:]
+        return self._rows(numbered)
+
+    def _rows(self, data: list[tuple[int, str]]) -> bool:
+        """Parse data lines ``(line number, text)`` into the table."""
+        if not data or self.names is None:
+            return True
+        try:
+            part = np.loadtxt([line for _i, line in data], delimiter=",", dtype=np.float64,
+                              comments=None, ndmin=2)  # fmt: skip
+        except ValueError:
+            return False
+        if part.shape != (len(data), len(self.names)):
+            return False
+        a, b = self.n, self.n + len(data)
+        self.table[a:b] = part
+        self.lines[a:b] = [i for i, _line in data]
+        self.n = b
+        return True
 
 
 def _csv_rows(path: Path) -> list[tuple[int, list[str]]]:
@@ -776,6 +986,7 @@ def load_demonstration(
     grasped: str | Path | None = None,
     environment: str | Path | None = None,
     fps: float | None = None,
+    camera_poses: bool = True,
 ) -> Demonstration:
     """Read a demonstration from a ``.pose.list`` or a pose CSV, chosen by the file name.
 
@@ -789,6 +1000,8 @@ def load_demonstration(
         Model files overriding those the file names (used as given).
     fps : float, optional
         Frame rate for a ``.pose.list`` (see :func:`read_pose_list`); ignored for CSV.
+    camera_poses : bool
+        Keep a ``.pose.list``'s raw camera poses and ids (see :func:`read_pose_list`).
 
     Returns
     -------
@@ -803,7 +1016,7 @@ def load_demonstration(
     u = DEFAULT_UNITS if units is None else units
     suffix = path.suffix.lower()
     if suffix == ".list":
-        dem = read_pose_list(path, units=u, fps=fps)
+        dem = read_pose_list(path, units=u, fps=fps, camera_poses=camera_poses)
     elif suffix == ".csv":
         dem = read_pose_csv(path, units=u)
     else:

@@ -220,7 +220,7 @@ DEDUPE_FRAMES = 2048
 
 #: Poses corrected in one batch at most: the batch's working arrays (Jacobians, SVDs) are
 #: this many times the elements' rows, whatever the length of the demonstration.
-CORRECTION_BLOCK = 1024
+CORRECTION_BLOCK = 256
 
 
 def _correct_in_blocks(

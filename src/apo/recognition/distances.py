@@ -15,7 +15,7 @@ from apo.geometry import (
 )
 from apo.recognition.types import ElementKey, FloatArray
 
-__all__ = ["DistanceCache", "element_distances"]
+__all__ = ["DistanceCache", "FixedDistances", "StreamedDistances", "element_distances"]
 
 
 def element_distances(
@@ -104,3 +104,63 @@ class DistanceCache:
         if not keys:
             return np.zeros((n, 0))
         return np.stack([self.cache[k] for k in keys], axis=1)
+
+
+class StreamedDistances:
+    """Distances (in thresholds) of element keys, one span of ``span`` frames at a time.
+
+    The spans are ``[0, span), [span, 2 span), ...``: each element's distances over a span
+    are computed in one call of :func:`element_distances` (a few numpy calls per element,
+    whatever the span's length) and kept only while frames of that span are asked for, so
+    the working memory is ``span x elements`` whatever the length of the demonstration.
+    A frame's distance is the same value whichever keys are asked for with it (each key is
+    computed on its own, over the same span): :func:`apo.recognition.segmentation.segment`
+    computes again the distances the first pass computed and dropped.
+    """
+
+    def __init__(
+        self, grasped: Polyhedron, environment: Polyhedron, X: FloatArray, theta: float
+    ) -> None:
+        self.args = (grasped, environment, X)
+        self.theta = theta
+        self.at: tuple[int, int] = (0, 0)
+        self.cols: dict[ElementKey, FloatArray] = {}
+
+    def rows(self, a: int, b: int, keys: Sequence[ElementKey], span: int) -> FloatArray:
+        """Distances of ``keys`` at frames ``a:b``, shape ``(b - a, len(keys))``."""
+        n = len(self.args[2])
+        if not keys:
+            return np.zeros((b - a, 0))
+        parts = []
+        for s0 in range((a // span) * span, b, span):  # the spans that frames a:b meet
+            s1 = min(n, s0 + span)
+            cols = self._span(s0, s1, keys)
+            lo, hi = max(a, s0) - s0, min(b, s1) - s0
+            parts.append(np.stack([cols[k][lo:hi] for k in keys], axis=1))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _span(self, s0: int, s1: int, keys: Sequence[ElementKey]) -> dict[ElementKey, FloatArray]:
+        """Return the columns of the span ``s0:s1``, its missing ``keys`` computed (once)."""
+        if self.at != (s0, s1):
+            self.at, self.cols = (s0, s1), {}
+        missing = [k for k in dict.fromkeys(keys) if k not in self.cols]
+        if missing:
+            G, E, X = self.args
+            d = element_distances(G, E, X[s0:s1], missing)
+            d /= self.theta
+            for j, k in enumerate(missing):
+                self.cols[k] = d[:, j]
+        return self.cols
+
+
+class FixedDistances(DistanceCache):
+    """Distances already computed for one block of frames, handed out as a DistanceCache."""
+
+    def __init__(self, keys: Sequence[ElementKey], dist: FloatArray) -> None:
+        self.keys, self.dist = list(keys), dist
+
+    def get(self, keys: Sequence[ElementKey]) -> FloatArray:
+        """Return the block's distances; ``keys`` must be those it was made with."""
+        if list(keys) != self.keys:
+            raise ValueError("FixedDistances: asked for other keys than it holds")
+        return self.dist

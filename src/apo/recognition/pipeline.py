@@ -33,7 +33,7 @@ from apo.recognition.analysis import Analysis, analyse_needed
 from apo.recognition.build import build_states, build_transitions, rejected_runs
 from apo.recognition.contacts import Observations, observe
 from apo.recognition.correction import Corrected, correct_by_label
-from apo.recognition.distances import DistanceCache
+from apo.recognition.distances import StreamedDistances
 from apo.recognition.inputs import check_scale, check_sequence, default_threshold
 from apo.recognition.noise import (
     CONTACT_NOISE_RATIO,
@@ -265,11 +265,11 @@ def _recognise_once(
     scene = make_scene(grasped, environment, X, threshold, costs, est, floor_share)
     observed = observe(scene, memoize=memoize, progress=progress, jobs=jobs)
     tm["contacts"] = time.perf_counter() - t0
-    dists = DistanceCache(grasped, environment, X, scene.unit)
-    path0, own = _timed(tm, "segmentation", first_pass, scene, observed, dists)
+    dists = StreamedDistances(grasped, environment, X, scene.unit)
+    path0, own, seen = _timed(tm, "segmentation", first_pass, scene, observed, dists)
     an = _timed(tm, "analysis", analyse_needed, scene, observed, own, path0)
-    seg = _timed(tm, "segmentation", segment, scene, an, dists, observed)
-    del dists  # the distances of every element at every frame: not needed any more
+    seg = _timed(tm, "segmentation", segment, scene, an, dists, observed, seen)
+    del dists, seen  # the observed elements' distances: not needed any more
     path, obs_c = seg.path, seg.observed
     chosen = an.states(observed)
     corrected = _timed(
