@@ -33,15 +33,15 @@ Each iteration (see :func:`projective_icp`):
    ``CONTOUR_WEIGHT_MAX``), ``sigma_lateral`` half a pixel at the object's distance;
 4. optional **constraint rows** (``constraint``), e.g. non-penetration of the other object
    (:func:`apo.perception.register.register_projective`);
-   **Ownership** (no colour needed): an object pixel counts as the model's only where its
-   depth agrees with the model rendered at the current pose. A pixel observed in front of
-   the rendered surface by more than the current Tukey scale is an occluder (a hand, an
-   arm), and so is every pixel connected to it (8-neighbours) through pixels in front by
-   more than the depth noise ``sigma`` (the occluder's surface where it comes within the
-   Tukey scale of the model's, e.g. fingers pressed on a face): they give no surface row.
-   With ``clutter`` (the mask is not the object's own, e.g. depth alone: a hand beside the
-   part is in it), object pixels outside the rendered silhouette give no contour row
-   either (they cannot be told from a hand beside the part; measured, they pulled the
+   **Ownership** with ``clutter`` (the mask is not the object's own, e.g. depth alone: a
+   hand holding the part is in it; no colour needed): an object pixel counts as the
+   model's only where its depth agrees with the model rendered at the current pose. A
+   pixel observed in front of the rendered surface by more than the current Tukey scale is
+   an occluder (a hand, an arm), and so is every pixel connected to it (8-neighbours)
+   through pixels in front by more than the depth noise ``sigma`` (the occluder's surface
+   where it comes within the Tukey scale of the model's, e.g. fingers pressed on a face):
+   they give no surface row. Object pixels outside the rendered silhouette give no contour
+   row either (they cannot be told from a hand beside the part; measured, they pulled the
    T-peg 16 mm into the hand from its true pose at 1 m); the silhouette then rests on the
    pixels where the sensor sees through the model, which no occluder can produce;
 5. weigh the rows by Tukey's biweight of their residual, with scale ``max(floor, k sigma(z))``
@@ -307,9 +307,9 @@ def projective_icp(
         model moves, weighted 1 (e.g. non-penetration of a known obstacle:
         :func:`apo.perception.register.register_projective`).
     clutter : bool, optional
-        The mask may hold other things' pixels beside the object (no colour cue: a hand
-        holding the part): its pixels outside the rendered silhouette give no contour rows
-        (see the module notes). Occluders in front of the model are left out either way.
+        The mask may hold other things' pixels (no colour cue: a hand holding the part):
+        occluders in front of the model (:func:`occluders`) give no rows, nor do its pixels
+        outside the rendered silhouette (see the module notes).
 
     Returns
     -------
@@ -393,10 +393,10 @@ def _rows(
     Contour rows: a pixel on one side of the model's rendered silhouette while the
     observation puts it on the other (an object pixel where the model renders nothing; a
     model pixel where the sensor sees through it), and the plane through the camera centre
-    and the nearest silhouette edge of the model (see :func:`_contour`). Object pixels an
-    occluder holds (:func:`occluders`; in front by more than the Tukey scale ``scale_k``,
-    or connected to such through pixels in front by more than the noise) give no row;
-    with ``clutter``, neither do object pixels outside the rendered silhouette.
+    and the nearest silhouette edge of the model (see :func:`_contour`). With ``clutter``,
+    object pixels an occluder holds (:func:`occluders`; in front by more than the Tukey
+    scale ``scale_k``, or connected to such through pixels in front by more than the noise)
+    give no row, nor do object pixels outside the rendered silhouette.
     """
     rendered, tri = rasterize(transform_points(X, model.vertices), model.triangles, win.camera)
     R, t = X[:3, :3], X[:3, 3]
@@ -406,7 +406,8 @@ def _rows(
         vis &= ~((win.occluder > 0) & (win.occluder < rendered))
     surf = win.mask & vis
     diff = rendered - win.depth
-    surf &= ~occluders(diff, surf, np.maximum(win.scale, scale_k), np.maximum(1e-3, win.sigma))
+    if clutter:
+        surf &= ~occluders(diff, surf, np.maximum(win.scale, scale_k), np.maximum(1e-3, win.sigma))
     n_C = model.normals[tri[surf]] @ R.T
     keep = np.abs(np.einsum("ij,ij->i", win.rays[surf], n_C)) >= cos_min
     P = win.points[surf][keep]
