@@ -15,6 +15,8 @@ LINES = [
     ["report", "task.json"],
     ["figures", "task.json", "--out", "f"],
     ["analyze", "x.csv", "--plot", "--units", "m"],
+    ["track", "f", "--grasped", "g.stl", "--environment", "e.stl", "--units", "m", "--out", "p"],
+    ["track", "f", "--grasped", "g", "--environment", "e", "--colour", "none", "--out", "p.csv"],
 ]
 
 
@@ -32,22 +34,25 @@ def test_every_command_is_registered_by_its_module() -> None:
     for name in COMMANDS:
         one = build_parser(name)
         (s,) = (a for a in one._actions if a.dest == "command")
-        assert list(s.choices) == (["analyze"] if name == "analyze" else list(COMMANDS))
+        assert list(s.choices) == ([name] if name in ("analyze", "track") else list(COMMANDS))
 
 
-def test_analyze_imports_no_other_command_module() -> None:
+@pytest.mark.parametrize("command", ["analyze", "track"])
+def test_analyze_and_track_import_no_other_command_module(command: str) -> None:
+    # (`apo analyze FRAMES` runs the tracker: apo.cli.analyze imports apo.cli.track)
     code = (
         "import sys\n"
         "from apo.cli import main\n"
         "try:\n"
-        "    main(['analyze', '--help'])\n"
+        f"    main(['{command}', '--help'])\n"
         "except SystemExit:\n"
         "    pass\n"
         "print(sorted(m for m in sys.modules if m.startswith('apo.cli.')))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     loaded = out.stdout.strip().splitlines()[-1]
-    assert "apo.cli.analyze" in loaded
+    assert f"apo.cli.{command}" in loaded
+    assert command == "analyze" or "apo.cli.analyze" not in loaded
     assert "apo.cli.demo" not in loaded and "apo.cli.replay" not in loaded
 
 

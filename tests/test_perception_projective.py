@@ -251,3 +251,24 @@ def test_a_limit_cycle_stops_with_the_pose_of_the_iteration_limit(
             assert not fast.converged and full.iterations == 15
             stopped += 1
     assert stopped >= 3  # the case is met (9 of 12 when written)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_edge_and_cross_are_the_broadcast_forms_bit_for_bit(seed: int) -> None:
+    from apo.perception.projective import _cross, _nearest_edge
+
+    rng = np.random.default_rng(seed)
+    u, v = rng.integers(0, 640, 500), rng.integers(0, 480, 500)
+    a2 = rng.uniform(-50, 700, (14, 2))
+    ab = rng.normal(0, 80, (14, 2))
+    ab[3] = 0.0  # a degenerate edge
+    a2[5], ab[5] = (u[0], v[0]), (0.5, 0.0)  # a pixel on an edge
+    pix = np.column_stack((u, v)).astype(np.float64)  # the form before
+    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    s = np.clip(((pix[:, None, :] - a2[None]) * ab[None]).sum(-1) / ab2[None], 0.0, 1.0)
+    k = np.argmin(((a2[None] + s[..., None] * ab[None] - pix[:, None, :]) ** 2).sum(-1), axis=1)
+    k_new, s_new = _nearest_edge(u, v, a2, ab)
+    np.testing.assert_array_equal(k_new, k)
+    np.testing.assert_array_equal(s_new, s[np.arange(len(k)), k])  # -0.0 == 0.0: a sum's sign
+    x, y = rng.normal(size=(300, 3)), rng.normal(size=(300, 3)) * 1e-3
+    assert _cross(x, y).tobytes() == np.cross(x, y).tobytes()

@@ -47,10 +47,11 @@ COMMANDS = ("dof", "contacts", "analyze", "demo", "track", "report", "figures", 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """Return the top-level parser with every available sub-command registered.
 
-    With ``only="analyze"``, only that sub-command is registered (the other commands'
-    modules are not imported): what :func:`main` parses ``apo analyze ...`` with, the
-    command whose whole-process time is a target (docs/recognition.md, "The whole
-    process"). Any other ``only`` registers every command.
+    With ``only="analyze"`` or ``only="track"``, only that sub-command is registered (the
+    other commands' modules are not imported: 0.1 s of CPU): what :func:`main` parses
+    ``apo analyze ...`` and ``apo track ...`` with, the commands whose whole-process times
+    are targets (docs/recognition.md, "The whole process"; docs/perception.md, "Session 5:
+    speed"). Any other ``only`` registers every command.
     """
     parser = argparse.ArgumentParser(
         prog="apo",
@@ -65,6 +66,11 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
         analyze.register(sub)
         return parser
+    if only == "track":  # `apo track`: 4 s for 120 frames is a target (docs/perception.md)
+        from apo.cli import track
+
+        track.register(sub)
+        return parser
     # Plain imports (tools see them); inside the function because the command modules
     # import this package. One line per command, in the order `apo --help` lists them.
     from apo.cli import analyze, contacts, demo, dof, figures, plan, replay, report, track
@@ -78,7 +84,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code (0 ok, 1 failure, 2 bad input)."""
     given = list(sys.argv[1:] if argv is None else argv)
     # `apo analyze ...` needs the analyze parser only (the other commands' modules are
-    # not imported: a few ms of every run, where the 41-frame target is 0.3 s)
+    # not imported: a few ms of every run, where the 41-frame target is 0.3 s); as
+    # `apo track ...`
     parser = build_parser(given[0] if given else None)
     args = parser.parse_args(given)
     if getattr(args, "func", None) is None:
