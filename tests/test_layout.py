@@ -117,7 +117,7 @@ def test_one_definition_of_the_array_aliases_and_the_units_table() -> None:
 
 
 LAYERS = {
-    **dict.fromkeys(("constants", "errors", "typing"), 1),
+    **dict.fromkeys(("constants", "errors", "typing", "workers"), 1),
     **dict.fromkeys(
         (
             "spatial",

@@ -1,4 +1,4 @@
-"""Stages split over forked processes (apo.recognition.workers): the same results as one.
+"""Stages split over forked processes (apo.workers): the same results as one.
 
 The forking checks run in a fresh interpreter (one thread: the test runner's own threads
 make ``workers_for`` refuse to fork, and a fork should not copy them), which prints its
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from apo.recognition import workers
+from apo import workers
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -30,7 +30,8 @@ import json, os, sys
 import numpy as np
 from apo import synthetic, task as task_mod
 from apo.contact import search
-from apo.recognition import recognize_frames, workers
+from apo import workers
+from apo.recognition import recognize_frames
 from apo.recognition.contacts import label_frames
 from apo.recognition.correction import correct_by_label
 from apo.recognition.pipeline import make_scene
@@ -205,3 +206,57 @@ def test_correction_of_frames_without_elements_keeps_them(jobs: int | None) -> N
     labels = np.zeros(5, dtype=np.int64)
     Xc, b, a, c = correct_by_label(cube, cube, X, free, labels, 1e-3, jobs=jobs)
     assert np.array_equal(Xc, X) and not b.any() and not a.any() and c.all()
+
+
+# apo analyze with task.json written by a child whatever the number of states
+TASK_IN_CHILD = """
+import sys
+from apo.report import writer
+from apo.cli import main
+writer.TASK_IN_CHILD_STATES = 1
+sys.exit(main(["analyze", *sys.argv[1:]]))
+"""
+
+
+def _analyze(args: list[str], *, task_in_child: bool = False) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    how = ["-c", TASK_IN_CHILD] if task_in_child else ["-m", "apo.cli", "analyze"]
+    cmd = [sys.executable, *how, *args]
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+
+
+def test_a_long_pose_file_read_in_a_child_gives_the_same_outputs(tmp_path: Path) -> None:
+    # apo analyze reads a long pose file and its models in a forked child while it imports
+    # the stages, and splits the search and the correction: every output byte the same
+    from apo import synthetic
+    from apo.cli.analyze import READ_IN_CHILD_BYTES
+    from apo.cli.demo import _write_stl
+    from apo.io.poses import write_pose_csv
+
+    demo = synthetic.add_noise(
+        synthetic.peg_in_hole_2d(n_frames=900), sigma_mm=1.0, sigma_deg=1.0, seed=5
+    )
+    g, e = tmp_path / "g.stl", tmp_path / "e.stl"
+    _write_stl(demo.grasped, g, 1000.0)
+    _write_stl(demo.environment, e, 1000.0)
+    poses = write_pose_csv(tmp_path / "long.csv", demo.times, demo.X_EG, units="mm")
+    assert poses.stat().st_size >= READ_IN_CHILD_BYTES
+    models = ["--grasped", str(g), "--environment", str(e)]
+    runs = {}
+    for jobs, child in (("1", False), ("auto", False), ("auto", True)):
+        out = tmp_path / f"out-{jobs}-{child}"
+        args = [str(poses), "--out", str(out), "--json", "--jobs", jobs, *models]
+        run = _analyze(args, task_in_child=child)
+        assert run.returncode == 0, run.stderr[-2000:]
+        files = {n: (out / n).read_bytes() for n in ("task.json", "frames.csv", "report.html")}
+        runs[jobs, child] = (run.stdout.replace(str(out), "OUT"), files)
+    assert runs["1", False] == runs["auto", False] == runs["auto", True]
+    # a bad long file: the same error from the child as from this process
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x,y,z,qw,qx,qy,qz\n" + "0,1,2,3,1,0,0,0\n" * 8000 + "1,nan?,2\n")
+    errors = set()
+    for jobs in ("1", "auto"):
+        run = _analyze([str(bad), "--out", str(tmp_path / "bad"), "--jobs", jobs, *models])
+        assert run.returncode == 2
+        errors.add(run.stderr.strip().splitlines()[-1])
+    assert len(errors) == 1 and "bad.csv" in errors.pop()

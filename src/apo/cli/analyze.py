@@ -6,7 +6,6 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -274,6 +273,69 @@ def _load_models(
     return G, E, paths[0], paths[1]
 
 
+#: Pose files from this size (bytes; about 700 frames) are read in a forked child while the
+#: stages are imported (:func:`_read_inputs`). Below it, reading the file and the models costs
+#: about as much as the fork and the pages it copies (72 M instructions of the 41 frames'
+#: 1,529 M were moved off this process, against some 2,600 more page faults here).
+READ_IN_CHILD_BYTES = 100_000
+
+
+def _read_inputs(
+    args: argparse.Namespace, demo: Path
+) -> tuple[Any, Polyhedron, Polyhedron, Path, Path]:
+    """Read the pose file and its models: ``(poses, G, E, G's path, E's path)``.
+
+    A pose file of ``READ_IN_CHILD_BYTES`` or more (a long demonstration) is read in a
+    forked child where that is possible (:func:`apo.workers.can_fork`, ``--jobs`` not 1),
+    while this process imports the recognition stages (:func:`_import_stages`); the child
+    sends back the poses as a plain namespace (``times``, ``X_EG``, ``units``: the reader's
+    module is then never imported here) and the models, the same numbers.
+    """
+    from apo.workers import can_fork, run_parts
+
+    read = partial(_read_poses_and_models, args, demo)
+    if args.jobs == 1 or demo.stat().st_size < READ_IN_CHILD_BYTES or not can_fork():
+        return read()
+    parts: list[Callable[[], Any]] = [partial(_import_stages, args), read]
+    got: tuple[Any, Polyhedron, Polyhedron, Path, Path] = run_parts(parts)[1]
+    return got
+
+
+def _read_poses_and_models(
+    args: argparse.Namespace, demo: Path
+) -> tuple[Any, Polyhedron, Polyhedron, Path, Path]:
+    """Read a pose file and its models; the poses as ``times``, ``X_EG`` and ``units``."""
+    from types import SimpleNamespace
+
+    from apo.cli import warnings_to_stderr
+    from apo.io import poses
+
+    with warnings_to_stderr("apo analyze"):
+        dem = poses.load_demonstration(
+            demo,
+            units=args.units,
+            grasped=args.grasped,
+            environment=args.environment,
+            camera_poses=False,  # not needed: X_EG only
+        )
+    G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
+    plain = SimpleNamespace(times=dem.times, X_EG=dem.X_EG, units=getattr(dem, "units", None))
+    return plain, G, E, gp, ep
+
+
+def _import_stages(args: argparse.Namespace) -> None:
+    """Import the modules recognition and the outputs will use (while a child reads)."""
+    import highspy  # noqa: F401 - the DOF analyses' LPs
+    import numpy.ma  # noqa: F401 - numpy's unique() imports it at its first call
+
+    import apo.io.plausibility
+    import apo.recognition.pipeline
+
+    if not args.no_report:
+        import apo.report.html
+        import apo.report.sources  # noqa: F401
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``apo analyze``; return the exit code."""
     demo = Path(args.demo)
@@ -294,12 +356,12 @@ def run(args: argparse.Namespace) -> int:
 def _run(
     args: argparse.Namespace, demo: Path, outs: OutputSet, worker: PlotWorker | None
 ) -> dict[str, Path]:
-    from apo.io import poses
-    from apo.recognition import recognize_frames
-    from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
-
     out = outs.given
-    floor_share = TRACKED_FLOOR_SHARE if demo.is_dir() else None
+    floor_share = None
+    if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
+        from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
+
+        floor_share = TRACKED_FLOOR_SHARE
     if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
         from apo.cli.track import demonstration_from_frames
 
@@ -309,19 +371,7 @@ def _run(
         from apo.cli.track import reject_tracking_options
 
         reject_tracking_options(args, demo)
-        from apo.cli import warnings_to_stderr
-
-        with warnings_to_stderr("apo analyze"):
-            dem = poses.load_demonstration(
-                demo,
-                units=args.units,
-                grasped=args.grasped,
-                environment=args.environment,
-                camera_poses=False,  # not needed: X_EG only
-            )
-        G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, dem)
-        if getattr(dem, "X_C", None) is not None:  # the camera poses: not needed any more
-            dem = replace(dem, X_C=None, tags=None)
+        dem, G, E, gp, ep = _read_inputs(args, demo)
     units = args.units or getattr(dem, "units", None) or "mm"
     from apo.task import UNITS
 
@@ -330,6 +380,8 @@ def _run(
         raise InputFormatError(f"--threshold must be positive, got {args.threshold}")
     noise = parse_noise(args.noise, UNITS[units])
     _warn_scale(G, E, dem.X_EG, units, threshold, (gp, ep))
+    from apo.recognition import recognize_frames
+
     progress, close = progress_bar(len(dem.X_EG), "contacts")
     try:
         rec = recognize_frames(
@@ -356,4 +408,5 @@ def _run(
         worker=worker,
         report=None if args.no_report else report_maker(rec, G, E, dem.X_EG, [demo]),
         on_task=partial(print_result, rec, as_json=args.json),  # before the plot is waited for
+        jobs=args.jobs,
     )

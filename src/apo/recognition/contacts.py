@@ -18,7 +18,7 @@ import numpy.typing as npt
 from apo.contact import ContactFinder, ContactState
 from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
 from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
-from apo.recognition.workers import run_parts, workers_for
+from apo.workers import run_parts, workers_for
 
 __all__ = [
     "Observations",
@@ -101,7 +101,7 @@ def label_frames(
     same blocks as one process searches) and hands back its ``(frame, code)`` rows
     (:meth:`ContactFinder.element_codes`); the rows in order are labelled as
     :meth:`ContactFinder.find_labels` labels them, so the labels are the same bit for bit.
-    ``jobs``: None for auto (:func:`apo.recognition.workers.workers_for`).
+    ``jobs``: None for auto (:func:`apo.workers.workers_for`).
     """
     step = finder.block_frames
     n_blocks = -(-len(X) // step)

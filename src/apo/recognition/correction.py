@@ -15,7 +15,7 @@ from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
 from apo.recognition.contacts import distinct_poses
 from apo.recognition.types import BoolArray, FloatArray, IntArray
-from apo.recognition.workers import PARALLEL_MIN_FRAMES, run_parts, shared_zeros, workers_for
+from apo.workers import PARALLEL_MIN_FRAMES, run_parts, shared_zeros, workers_for
 
 Corrected = tuple[FloatArray, FloatArray, FloatArray, BoolArray]
 """Corrected poses (N, 4, 4), residuals before and after (N,), converged flags (N,)."""
@@ -104,7 +104,7 @@ def correct_by_label(
     (:func:`apo.recognition.contacts.distinct_poses`), among ``DEDUPE_FRAMES`` frames at a
     time (a repeat further on is corrected again, to the same pose).
 
-    ``jobs`` (None: auto, :func:`apo.recognition.workers.workers_for`): processes the
+    ``jobs`` (None: auto, :func:`apo.workers.workers_for`): processes the
     states' frames are shared among (:func:`_share`), each process writing its frames into
     arrays shared with the others; the same numbers, a pose's correction not depending on
     the other poses of its batch.

@@ -116,7 +116,7 @@ def recognize(
         tracked from depth frames (their smooth bias does not show in the noise estimate).
     jobs : int, optional
         Processes the contact search and the correction of the distinct frames are split
-        over (forked for those stages, :mod:`apo.recognition.workers`); default: auto (the
+        over (forked for those stages, :mod:`apo.workers`); default: auto (the
         available cores, on long demonstrations only); 1: one process. The result is the
         same bit for bit whatever ``jobs``.
 

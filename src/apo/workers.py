@@ -1,4 +1,4 @@
-"""Work of one stage split over processes forked on the spot (the second core of a machine).
+"""Work split over processes forked on the spot (the second core of a machine).
 
 ``apo analyze`` is one process and its target is wall time; on a machine with two or more
 cores, the stages whose cost grows with the distinct frames (the contact search of every
@@ -7,6 +7,10 @@ that stage: a forked child has every model, pose and state of its parent at no c
 its part and sends it back through a pipe (pickled), then exits. Every part is computed by
 the same functions as in one process, so the results are the same bit for bit
 (``tests/test_workers.py``; ``docs/recognition.md``, "Session 5").
+
+``apo analyze`` also reads a pose file and its models in a child while it imports the
+recognition stages (:mod:`apo.cli.analyze`): this module imports only the standard library
+and numpy, so that the fork comes before those imports.
 
 Forking is done only where it is safe and pays: ``os.fork`` exists, the process runs a
 single thread (a fork copies only the calling thread; a lock held by another one would stay
@@ -28,6 +32,7 @@ import numpy as np
 __all__ = [
     "PARALLEL_MIN_FRAMES",
     "available_cores",
+    "can_fork",
     "run_parts",
     "shared_zeros",
     "workers_for",
@@ -68,9 +73,12 @@ def workers_for(jobs: int | None, frames: int, *, min_frames: int = PARALLEL_MIN
         want = min(available_cores(), MAX_AUTO_JOBS, frames // max(1, min_frames // 2))
     else:
         want = min(jobs, frames)
-    if want <= 1 or not hasattr(os, "fork") or threading.active_count() > 1:
-        return 1
-    return want
+    return want if want > 1 and can_fork() else 1
+
+
+def can_fork() -> bool:
+    """Whether this process may fork workers: ``os.fork`` exists and one thread runs."""
+    return hasattr(os, "fork") and threading.active_count() == 1
 
 
 def run_parts(parts: Sequence[Callable[[], T]]) -> list[T]:
