@@ -69,7 +69,7 @@ from apo.perception.segment import (
 from apo.perception.smoothing import smooth_poses
 from apo.spatial import invert_pose, transform_points
 from apo.symmetry import Symmetry, nearest_twin, symmetries
-from apo.typing import BoolArray, FloatArray, IntArray
+from apo.typing import BoolArray, FloatArray
 
 __all__ = ["TrackOptions", "TrackResult", "track_frames"]
 
@@ -252,26 +252,6 @@ def _displacement(model: ModelCloud, X_a: FloatArray, X_b: FloatArray) -> float:
     return float(np.linalg.norm(moved, axis=1).max())
 
 
-def _components(mask: BoolArray, *, limit: int = 3, share: float = 0.1) -> tuple[IntArray, int]:
-    """Label the largest connected components of ``mask``: 1 the largest, 2 the next...
-
-    At most ``limit``, each at least ``share`` of the largest; other pixels 0.
-    """
-    from scipy import ndimage
-
-    lab, n = ndimage.label(mask)
-    labels = np.asarray(lab, dtype=np.int64)
-    if n == 0:
-        return labels, 0
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
-    order = np.argsort(-sizes, kind="stable")[:limit]
-    order = order[sizes[order] >= share * sizes[order[0]]]
-    relabel = np.zeros(n + 1, dtype=labels.dtype)
-    relabel[order] = np.arange(1, len(order) + 1)
-    return relabel[labels], len(order)
-
-
 def _noise_model(src: FrameSource, options: TrackOptions) -> DepthNoiseModel:
     """Return the recording's depth noise: given (``options.noise``) or estimated from 6 frames."""
     q = float(getattr(src.camera, "depth_scale", 0.0))
@@ -396,15 +376,20 @@ def _prefetch(pool: Executor, src: FrameSource, options: TrackOptions) -> dict[i
 
 def _environment_points(
     src: FrameSource, seg: _Segmenter, options: TrackOptions, cache: dict[int, _Frame],
-    prefetch: dict[int, Future[_Frame]] | None = None,
+    prefetch: dict[int, Future[_Frame]] | None = None, *, reach: float = 0.0,
 ) -> tuple[list[FloatArray], npt.NDArray[np.float32], npt.NDArray[np.float32]]:  # fmt: skip
     """Return the static regions' points (median depth of their pixels) and two depths.
 
     The median of every pixel over at most 9 frames (for the surface check), and the
     static pixels' surface depth over all the frames (:func:`surface_depth`; 0 elsewhere).
 
-    The regions are the largest connected components of the static pixels, largest first
-    (:func:`_components`). The frames decoded are kept in ``cache`` for the tracking loop
+    The regions are groups of connected components of the static pixels, largest first
+    (:func:`_object_groups`, at most 3): the largest and every component whose centroid is
+    within ``reach`` (the environment's diameter) of its centroid. The environment's image
+    can be in pieces (a slot's two sides, when the part passing between them is not static
+    and the block below the slot is within the support plane's threshold), and one piece
+    fits the model at a wrong pose as well as at the true one. The frames decoded are kept
+    in ``cache`` for the tracking loop
     (decoded once); those in ``prefetch`` (:func:`_prefetch`) are taken from there.
     """
     idx = _histogram_indices(len(src), options)
@@ -431,8 +416,7 @@ def _environment_points(
     # For the surface check: every pixel, over at most 9 of the frames (the sort is the cost).
     few = depths[:: max(1, -(-len(depths) // 9))]
     median_all = masked_median(few, few > 0)
-    lab, n = _components(static & (median > 0))
-    regions = [src.camera.backproject(median, lab == k) for k in range(1, n + 1)]
+    regions = _object_groups(static & (median > 0), median, src.camera, reach, share=0.1)
     return regions, median_all, surface_depth(depths, median > 0, seg.noise)
 
 
@@ -557,7 +541,7 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
     """Register the environment on the median depth of its pixels over many frames."""
     opt, E, cam = scene.opt, scene.E, scene.camera
     parts, median_depth, surface = _environment_points(
-        scene.src, scene.seg, opt, scene.cache, scene.prefetch
+        scene.src, scene.seg, opt, scene.cache, scene.prefetch, reach=E.diameter
     )
     parts = [p for p in parts if len(p) >= opt.min_points]
     if not parts:
