@@ -33,6 +33,17 @@ Each iteration (see :func:`projective_icp`):
    ``CONTOUR_WEIGHT_MAX``), ``sigma_lateral`` half a pixel at the object's distance;
 4. optional **constraint rows** (``constraint``), e.g. non-penetration of the other object
    (:func:`apo.perception.register.register_projective`);
+   **Ownership** with ``clutter`` (the mask is not the object's own, e.g. depth alone: a
+   hand holding the part is in it; no colour needed): an object pixel counts as the
+   model's only where its depth agrees with the model rendered at the current pose. A
+   pixel observed in front of the rendered surface by more than the current Tukey scale is
+   an occluder (a hand, an arm), and so is every pixel connected to it (8-neighbours)
+   through pixels in front by more than the depth noise ``sigma`` (the occluder's surface
+   where it comes within the Tukey scale of the model's, e.g. fingers pressed on a face):
+   they give no surface row. Object pixels outside the rendered silhouette give no contour
+   row either (they cannot be told from a hand beside the part; measured, they pulled the
+   T-peg 16 mm into the hand from its true pose at 1 m); the silhouette then rests on the
+   pixels where the sensor sees through the model, which no occluder can produce;
 5. weigh the rows by Tukey's biweight of their residual, with scale ``max(floor, k sigma(z))``
    for the depth noise ``sigma(z)`` of the pixel
    (:class:`apo.perception.segment.DepthNoiseModel`); the scale starts at ``start_scale``
@@ -64,7 +75,10 @@ from apo.perception.render import rasterize
 from apo.spatial import orthonormalised, transform_points
 from apo.typing import FloatArray
 
-__all__ = ["FacePlanes", "ProjectiveResult", "face_planes", "projective_icp", "tukey_weights"]
+__all__ = [
+    "FacePlanes", "ProjectiveResult", "face_planes", "occluders", "projective_icp",
+    "tukey_weights",
+]  # fmt: skip
 
 TUKEY_K = 4.685
 """Tukey's biweight constant in standard deviations (95 % efficiency under Gaussian noise)."""
@@ -191,6 +205,7 @@ class _Window:
     points: FloatArray  # (h, w, 3) back-projected pixels (camera frame)
     rays: FloatArray  # (h, w, 3) unit viewing rays
     scale: FloatArray  # (h, w) final Tukey scale
+    sigma: FloatArray  # (h, w) depth noise
     free: FloatArray  # (h, w) depth beyond which the sensor sees through the model
     occluder: npt.NDArray[np.float32] | None
 
@@ -216,7 +231,7 @@ def _window(
     sig = np.zeros(d.shape) if sigma is None else np.asarray(sigma, np.float64)[::step, ::step]
     occ = None if occluder is None else np.asarray(occluder, dtype=np.float32)[::step, ::step]
     return _Window(
-        cam, d, ok, P, rays, np.maximum(floor, k * sig), np.maximum(floor, 4.0 * sig), occ
+        cam, d, ok, P, rays, np.maximum(floor, k * sig), sig, np.maximum(floor, 4.0 * sig), occ
     )
 
 
@@ -242,6 +257,7 @@ def projective_icp(
     damping: float = 1e-4,
     silhouette: bool = True,
     constraint: Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]] | None = None,
+    clutter: bool = False,
 ) -> ProjectiveResult:
     """Projective point-to-plane ICP of a model to the object's pixels of a depth image.
 
@@ -290,6 +306,10 @@ def projective_icp(
         ``q_M`` (model frame) whose residual ``r`` grows along ``n_M`` (model frame) as the
         model moves, weighted 1 (e.g. non-penetration of a known obstacle:
         :func:`apo.perception.register.register_projective`).
+    clutter : bool, optional
+        The mask may hold other things' pixels (no colour cue: a hand holding the part):
+        occluders in front of the model (:func:`occluders`) give no rows, nor do its pixels
+        outside the rendered silhouette (see the module notes).
 
     Returns
     -------
@@ -306,7 +326,7 @@ def projective_icp(
     back: list[FloatArray] = []  # the poses before the last two steps at the final scale
     for it in range(1, iterations + 1 if n_obs else 1):  # no object pixel: no evidence
         steps = it
-        rows = _rows(X, model, win, cos_min, silhouette)
+        rows = _rows(X, model, win, cos_min, scale_k, silhouette=silhouette, clutter=clutter)
         if constraint is not None:
             rows = _with_constraint(rows, constraint(X))
         system = _normal_equations(rows, scale_k)
@@ -332,6 +352,29 @@ def projective_icp(
     return ProjectiveResult(orthonormalised(X), pairs, n_obs, rms, steps, converged)
 
 
+def occluders(
+    diff: FloatArray, candidates: npt.NDArray[np.bool_], far: FloatArray, near: FloatArray
+) -> npt.NDArray[np.bool_]:
+    """Pixels of ``candidates`` that something in front of the model occupies.
+
+    ``diff`` is the model's rendered depth less the observed depth (positive: observed in
+    front). Seeds are candidates in front by more than ``far``; the occluder is every
+    candidate in front by more than ``near`` connected to a seed (8-neighbours): an
+    occluder's surface reaches the model's where it touches it, so a fixed cut leaves a
+    band of it within the noise of the model's surface, and a hand's band of pixels then
+    pulls the pose (hysteresis, as in edge detection).
+    """
+    from scipy import ndimage
+
+    seeds = candidates & (diff > far)
+    if not seeds.any():
+        return seeds
+    weak = candidates & (diff > near)
+    labels, _ = ndimage.label(weak, structure=np.ones((3, 3), dtype=bool))
+    hit = np.unique(labels[seeds])
+    return weak & np.isin(labels, hit[hit > 0])
+
+
 def _moved(V: FloatArray, X: FloatArray, Y: FloatArray) -> float:
     """Largest displacement (metres) of the vertices ``V`` between the poses ``X`` and ``Y``."""
     d = V @ (X[:3, :3] - Y[:3, :3]).T + (X[:3, 3] - Y[:3, 3])
@@ -339,8 +382,9 @@ def _moved(V: FloatArray, X: FloatArray, Y: FloatArray) -> float:
 
 
 def _rows(
-    X: FloatArray, model: FacePlanes, win: _Window, cos_min: float, silhouette: bool
-) -> _Rows:
+    X: FloatArray, model: FacePlanes, win: _Window, cos_min: float, scale_k: float, *,
+    silhouette: bool, clutter: bool,
+) -> _Rows:  # fmt: skip
     """Return the residual rows at ``X``.
 
     Observed points and normals (model frame), residuals, Tukey scales and prior weights.
@@ -349,7 +393,10 @@ def _rows(
     Contour rows: a pixel on one side of the model's rendered silhouette while the
     observation puts it on the other (an object pixel where the model renders nothing; a
     model pixel where the sensor sees through it), and the plane through the camera centre
-    and the nearest silhouette edge of the model (see :func:`_contour`).
+    and the nearest silhouette edge of the model (see :func:`_contour`). With ``clutter``,
+    object pixels an occluder holds (:func:`occluders`; in front by more than the Tukey
+    scale ``scale_k``, or connected to such through pixels in front by more than the noise)
+    give no row, nor do object pixels outside the rendered silhouette.
     """
     rendered, tri = rasterize(transform_points(X, model.vertices), model.triangles, win.camera)
     R, t = X[:3, :3], X[:3, 3]
@@ -358,6 +405,9 @@ def _rows(
     if win.occluder is not None:
         vis &= ~((win.occluder > 0) & (win.occluder < rendered))
     surf = win.mask & vis
+    diff = rendered - win.depth
+    if clutter:
+        surf &= ~occluders(diff, surf, np.maximum(win.scale, scale_k), np.maximum(1e-3, win.sigma))
     n_C = model.normals[tri[surf]] @ R.T
     keep = np.abs(np.einsum("ij,ij->i", win.rays[surf], n_C)) >= cos_min
     P = win.points[surf][keep]
@@ -366,7 +416,9 @@ def _rows(
     r = np.einsum("ij,ij->i", n_M, x) - model.offsets[tri[surf][keep]]
     out = [(x, n_M, r, win.scale[surf][keep], np.ones(len(r)))]
     if silhouette and on.any():
-        wrong = (win.mask & ~on) | (vis & ~win.mask & (win.depth > rendered + win.free))
+        wrong = vis & ~win.mask & (-diff > win.free)  # the sensor sees through the model
+        if not clutter:
+            wrong |= win.mask & ~on  # an object pixel where the model renders nothing
         if wrong.any():
             out.append(_contour(X, model, win, wrong, float(np.median(rendered[on]))))
     x, n, r, scale, weight = (np.concatenate([o[k] for o in out]) for k in range(5))

@@ -779,15 +779,10 @@ class _Tracker:
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], pred: FloatArray
     ) -> Registration | None:
         """Register in the window around the prediction: from it, the last pose, coarse-to-fine."""
-        window = _window(self.scene.camera, pred, self.G, self.margin)
-        if window is None:
+        seen = self._around(rgb, depth, pred)
+        if seen is None:
             return None
-        pts, d, c, env_d, mask = self.points(rgb, depth, window, self.gate(pred))
-        if len(pts) < self.opt.min_points:
-            return None
-        kw = {**self.scene.settings(pts), "depth": d, "camera": c, "occluder": env_d,
-              "obstacle": self.obstacle, "engine": "numpy"}  # fmt: skip
-        reach = max(self.opt.track_distance, 3.0 * kw["inlier_distance"])
+        (pts, d, c, env_d, mask), kw, reach = seen
         result: Registration | None = None
         starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
         if self.opt.projective:  # from the prediction, then from the last pose
@@ -813,6 +808,38 @@ class _Tracker:
         r = register(pts, self.G, pred, **kw)
         return r if _better(r, result) else result
 
+    def _around(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], X: FloatArray
+    ) -> tuple[_Observed, dict[str, Any], float] | None:
+        """Return the observation about a pose, the registrations' settings and the reach.
+
+        The window and the gate about ``X``; None when it holds too few points.
+        """
+        window = _window(self.scene.camera, X, self.G, self.margin)
+        if window is None:
+            return None
+        seen = self.points(rgb, depth, window, self.gate(X))
+        if len(seen.points) < self.opt.min_points:
+            return None
+        kw = {**self.scene.settings(seen.points), "depth": seen.depth, "camera": seen.camera,
+              "occluder": seen.environment, "obstacle": self.obstacle,
+              "engine": "numpy"}  # fmt: skip
+        return seen, kw, max(self.opt.track_distance, 3.0 * kw["inlier_distance"])
+
+    def polish(
+        self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], X: FloatArray
+    ) -> Registration | None:
+        """Register by the projective ICP in the window around a global search's candidate.
+
+        With depth alone the search's closest-point ICP is pulled by the points of a hand
+        holding the part; the projective ICP leaves them out (its per-pixel ownership).
+        """
+        seen = self._around(rgb, depth, X)
+        if seen is None:
+            return None
+        (pts, d, c, env_d, mask), kw, reach = seen
+        return self.projective(X, d, c, pts, mask, env_d, reach, kw)
+
     def projective(
         self, pred: FloatArray, d: npt.NDArray[np.float32], c: Camera, pts: FloatArray,
         mask: BoolArray, env_d: npt.NDArray[np.float32], reach: float, kw: dict[str, Any],
@@ -827,6 +854,8 @@ class _Tracker:
         """
         args = {k: v for k, v in kw.items() if k not in ("loss", "depth", "camera", "engine")}
         sigma = self.scene.noise.sigma(d)
+        # Without the colour a hand beside the part is in the mask (see projective_icp).
+        args["clutter"] = not self.scene.seg.colour.used
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
                                 start_scale=reach, **args)  # fmt: skip
         if _displacement(self.G, pred, r.X_CM) > self.opt.settle_distance:
@@ -847,6 +876,10 @@ class _Tracker:
         """
         d, c, env_d, mask = self._masked(rgb, depth, None)
         best: Registration | None = None
+
+        def polish(X: FloatArray) -> Registration | None:
+            return self.polish(rgb, depth, X)
+
         for pts in _object_groups(mask, d, c, self.G.diameter):
             pts = self._subset(pts)
             if len(pts) < self.opt.min_points:
@@ -854,6 +887,7 @@ class _Tracker:
             r = initialise(
                 pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
                 symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
+                polish=None if self.scene.seg.colour.used else polish,
                 **self.scene.settings(pts),
             )  # fmt: skip
             if best is None or plausibility(r) > plausibility(best):
