@@ -220,12 +220,14 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
     frame (the per-frame arrays), not the working arrays of whole stages or per-state copies.
 
     Traced by ``tracemalloc`` in a fresh interpreter, blocks of 256 frames (64 states) so
-    that both lengths fill their blocks. Measured when written: 2,231 bytes per frame on
-    distinct frames (the poses, the corrected poses, labels and flags, and mostly the
-    distances of the observed elements while segmenting, 8 bytes each), 578 on a short
-    demonstration repeated (each of its states a few frames long; 731 before the states at
-    a pose met again shared their pose and elements); before the block-wise stages and the
-    streamed task.json (d68de35) 2,493 and 2,485.
+    that both lengths fill their blocks. Measured (session 5, docs/recognition.md "Session
+    5: memory"): 1,005-1,012 bytes per frame on distinct frames (the poses, the corrected
+    poses, the costs of the analysed candidates, labels and flags, the observed states'
+    records), 578 on a short demonstration repeated (each of its states a few frames long).
+    Before: 2,231 on distinct frames while every element's distances at every frame were
+    kept between the segmentation passes (8 bytes each), 731 on the repeated one before the
+    states at a pose met again shared their pose and elements; before the block-wise stages
+    and the streamed task.json (d68de35) 2,493 and 2,485.
     """
     import subprocess
     import sys
@@ -235,7 +237,7 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
         capture_output=True, text=True, check=True,
     ).stdout  # fmt: skip
     per_frame = {k: float(v) for k, v in (line.split() for line in out.strip().splitlines())}
-    bound = {"distinct": 2400, "repeated": 700}
+    bound = {"distinct": 1200, "repeated": 650}
     for kind, limit in bound.items():
         assert per_frame[kind] < limit, (kind, per_frame)
 
@@ -373,3 +375,54 @@ def test_pose_csv_read_in_chunks_is_the_careful_read(tmp_path, monkeypatch) -> N
     }
     for what, (_p, msgs) in _errors_in_chunks(tmp_path, "bad.csv", bad, monkeypatch).items():
         assert msgs[0] == msgs[1] and "bad.csv" in msgs[0], what
+
+
+def test_contact_elements_have_slots_and_round_trip() -> None:
+    """A task of thousands of states places thousands of elements: no ``__dict__`` each,
+    and they still copy, pickle (the worker processes) and ``replace`` with every field."""
+    import copy
+    import dataclasses
+    import pickle
+
+    from apo.contact import ContactElement, ContactKind
+    from apo.dof import ContactPoint
+
+    el = ContactElement("EV", ("e", 4), ("v", 1), np.array([1.0, 2, 3]), np.eye(3)[:2])
+    assert not hasattr(el, "__dict__") and not hasattr(
+        ContactPoint(el.point, el.normals), "__dict__"
+    )
+    for other in (pickle.loads(pickle.dumps(el)), copy.deepcopy(el), copy.copy(el)):
+        assert other.key == el.key and other.kind is ContactKind.EV and other.singular
+        assert np.array_equal(other.point, el.point) and np.array_equal(other.normals, el.normals)
+    moved = dataclasses.replace(el, point=np.zeros(3))
+    assert moved.key == el.key and not moved.point.any() and moved.normals is el.normals
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        el.kind = ContactKind.VF  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 1 << 18])
+def test_report_data_escaped_in_chunks_is_the_whole_text(monkeypatch, chunk: int) -> None:
+    """The report's data (all but the task) is encoded and escaped a chunk at a time: the
+    bytes of the whole text encoded and escaped at once (non-ASCII, ``<>&`` included)."""
+    import apo.report.html as html
+
+    monkeypatch.setattr(html, "SCRIPT_CHUNK_CHARS", chunk)
+    rng = np.random.default_rng(chunk)
+    data = {"schema": "x", "n": [_random_value(rng, 0) for _ in range(40)], "t": "é</&>\u2028"}
+    rest = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    want = html._escape_script((rest[:-1] + ',"task":').encode("utf-8"))
+    pieces = list(html._script_pieces({**data, "task": {}}, '{"a": 1}'))
+    assert b"".join(pieces[:-2]) == want and pieces[-2:] == [b'{"a": 1}', b"}"]
+
+
+def test_touching_sets_share_one_tuple_per_feature_pair(seed: int = 14) -> None:
+    """The observed states' touching sets hold one tuple object per (G, E) feature pair."""
+    demo = add_noise(random_variant(seed), sigma_mm=1.5, sigma_deg=1.5, seed=seed)
+    rec = recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG)
+    seen: dict[Any, Any] = {}
+    n = 0
+    for s in rec.observed_states:
+        for pair in s.touching:
+            assert seen.setdefault(pair, pair) is pair
+            n += 1
+    assert n > len(seen) > 0  # pairs met in several states

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     import highspy
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class ContactPoint:
     """One contact point with its separating normals (environment frame, metres).
 

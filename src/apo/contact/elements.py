@@ -33,8 +33,10 @@ class ContactKind(enum.StrEnum):
 # A feature id: ("v" | "e" | "f", index into the Polyhedron's arrays).
 Feature = tuple[str, int]
 
+_set = object.__setattr__
 
-@dataclass(frozen=True, init=False)
+
+@dataclass(frozen=True, init=False, slots=True)
 class ContactElement(ContactPoint):
     """One contact element: a contact point with its normals and the features that make it.
 
@@ -76,15 +78,14 @@ class ContactElement(ContactPoint):
         normals: FloatArray,
     ) -> None:
         # The positional order (kind, grasped, environment, point, normals) predates the
-        # ContactPoint base, whose fields come first in the dataclass.
-        # One dict update (the frozen dataclass forbids setattr): the search makes thousands.
-        self.__dict__.update(
-            kind=kind if type(kind) is ContactKind else ContactKind(kind),
-            grasped=grasped,
-            environment=environment,
-            point=point,
-            normals=normals,
-        )
+        # ContactPoint base, whose fields come first in the dataclass. Slots, no __dict__:
+        # a task of thousands of states places thousands of elements (the frozen dataclass
+        # forbids setattr, so object's is called).
+        _set(self, "kind", kind if type(kind) is ContactKind else ContactKind(kind))
+        _set(self, "grasped", grasped)
+        _set(self, "environment", environment)
+        _set(self, "point", point)
+        _set(self, "normals", normals)
 
     @property
     def key(self) -> tuple[str, Feature, Feature]:

@@ -411,13 +411,20 @@ def _script_pieces(data: Mapping[str, Any], task_json: Any = None) -> Iterator[b
     rest = json.dumps(
         {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
     )
-    yield _escape_script((rest[:-1] + ',"task":').encode("utf-8"))
+    end = len(rest) - 1  # the closing brace: the task follows
+    for a in range(0, end, SCRIPT_CHUNK_CHARS):  # no whole copy of the text, encoded
+        yield _escape_script(rest[a : min(end, a + SCRIPT_CHUNK_CHARS)].encode("utf-8"))
+    yield b',"task":'
     if isinstance(task_json, str):
         yield _escape_script(task_json.strip().encode("utf-8"))
     else:
         for chunk in task_json.stripped_chunks():
             yield _escape_script(chunk)
     yield b"}"
+
+
+#: Characters of the report's data (all but the task) encoded and escaped at a time.
+SCRIPT_CHUNK_CHARS = 1 << 18
 
 
 def _escape_script(b: bytes) -> bytes:
