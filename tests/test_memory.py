@@ -413,3 +413,16 @@ def test_report_data_escaped_in_chunks_is_the_whole_text(monkeypatch, chunk: int
     want = html._escape_script((rest[:-1] + ',"task":').encode("utf-8"))
     pieces = list(html._script_pieces({**data, "task": {}}, '{"a": 1}'))
     assert b"".join(pieces[:-2]) == want and pieces[-2:] == [b'{"a": 1}', b"}"]
+
+
+def test_touching_sets_share_one_tuple_per_feature_pair(seed: int = 14) -> None:
+    """The observed states' touching sets hold one tuple object per (G, E) feature pair."""
+    demo = add_noise(random_variant(seed), sigma_mm=1.5, sigma_deg=1.5, seed=seed)
+    rec = recognize_frames(demo.grasped, demo.environment, demo.times, demo.X_EG)
+    seen: dict[Any, Any] = {}
+    n = 0
+    for s in rec.observed_states:
+        for pair in s.touching:
+            assert seen.setdefault(pair, pair) is pair
+            n += 1
+    assert n > len(seen) > 0  # pairs met in several states

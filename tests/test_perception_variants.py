@@ -99,8 +99,11 @@ def test_tracking_random_variants_without_initial_poses(tmp_path: Path, seed: in
 # a held part shows depth jumps at its outline) finds the part.
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 5])
-def test_depth_alone_with_a_hand_finds_the_part_not_the_hand(tmp_path: Path, seed: int) -> None:
+def test_depth_alone_with_a_hand_finds_the_part_not_the_hand(
+    tmp_path: Path, seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     pytest.importorskip("open3d")
+    import apo.perception.track as track
     from apo.perception.segment import ColourModel
     from apo.perception.track import TrackOptions, track_frames
 
@@ -108,7 +111,14 @@ def test_depth_alone_with_a_hand_finds_the_part_not_the_hand(tmp_path: Path, see
     assert v.hand
     r = render_variant(v, tmp_path / "f")
     opt = TrackOptions(colour=ColourModel.any_colour())
+    fallbacks = []  # frame-to-frame closest-point ICPs (the projective ICP's result not good)
+    register = track.register
+    monkeypatch.setattr(track, "register", lambda *a, **k: fallbacks.append(1) or register(*a, **k))
     res = track_frames(r.frames, r.grasped, r.environment, units="m", options=opt)
+    # The share of the points explained is no bar with a hand's points among them: the
+    # projective ICP's result is taken (measured: 43 and 49 fallback runs over the 29 frames
+    # before, 7 and 4 after).
+    assert len(fallbacks) < 10, (v.label(), len(fallbacks))
     X_CG = np.linalg.inv(r.X_CE) @ np.asarray(res.X_CE) @ np.asarray(res.X_EG)
     err = []
     for k, X in enumerate(X_CG):  # the nearest twin of the truth, frame by frame

@@ -56,6 +56,13 @@ def fill():
     a[2:] = 7.0
 workers.run_parts([lambda: None, fill])
 out["shared"] = a.tolist()
+workers._reap(block=True)  # every child reaped: none left, none a zombie
+out["unreaped"] = len(workers._UNREAPED)
+try:
+    os.waitpid(-1, os.WNOHANG)
+    out["children_left"] = True
+except ChildProcessError:
+    out["children_left"] = False
 
 # the contact search and the correction: parts == one process, bit for bit
 search._BATCH_PRIMITIVES = 64  # blocks of a few frames: several blocks per part
@@ -112,6 +119,10 @@ def test_an_error_in_a_child_is_raised_in_the_parent(forked: dict[str, Any]) -> 
 
 def test_a_child_that_dies_has_its_part_computed_by_the_parent(forked: dict[str, Any]) -> None:
     assert forked["dead"] == ["first", "here"]
+
+
+def test_children_are_all_reaped(forked: dict[str, Any]) -> None:
+    assert forked["unreaped"] == 0 and forked["children_left"] is False
 
 
 def test_children_write_shared_arrays(forked: dict[str, Any]) -> None:

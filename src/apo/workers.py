@@ -20,6 +20,7 @@ or with ``jobs=1``, every part runs in the calling process, in order.
 
 from __future__ import annotations
 
+import atexit
 import mmap
 import os
 import pickle
@@ -130,15 +131,41 @@ def _fork(part: Callable[[], Any]) -> tuple[int, int]:
 
 
 def _collect(pid: int, fd: int) -> tuple[bool | None, Any]:
-    """Read a child's result and reap it: ``(ok, value)``, ``(None, None)`` if it sent none."""
+    """Read a child's result: ``(ok, value)``, ``(None, None)`` if it sent none.
+
+    The child is reaped if it has exited; else later (:func:`_reap`): once its result is
+    read (the end of the pipe), the parent does not wait while the child's memory is freed.
+    """
     with os.fdopen(fd, "rb") as fh:
         data = fh.read()
-    os.waitpid(pid, 0)
+    _UNREAPED.append(pid)
+    _reap(block=False)
     try:
         ok, value = pickle.loads(data)
     except Exception:  # no or a cut message: the parent computes it
         return None, None
     return bool(ok), value
+
+
+#: Children whose result was read but that had not exited yet (reaped by :func:`_reap`).
+_UNREAPED: list[int] = []
+
+
+def _reap(*, block: bool) -> None:
+    """Reap the children in ``_UNREAPED`` that have exited (all of them with ``block``)."""
+    for pid in list(_UNREAPED):
+        try:
+            done, _status = os.waitpid(pid, 0 if block else os.WNOHANG)
+        except ChildProcessError:  # reaped elsewhere
+            done = pid
+        if done:
+            _UNREAPED.remove(pid)
+    if _UNREAPED and not _REAP_AT_EXIT:
+        atexit.register(_reap, block=True)
+        _REAP_AT_EXIT.append(True)
+
+
+_REAP_AT_EXIT: list[bool] = []
 
 
 def shared_zeros(shape: tuple[int, ...], dtype: Any, shared: bool) -> np.ndarray[Any, Any]:

@@ -332,15 +332,30 @@ def _touching(
     b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
     code = np.unique((F[k] * g.n_all + a) * e.n_all + b)
     fr, code = np.divmod(code, g.n_all * e.n_all)
-    a, b = np.divmod(code, e.n_all)
     bounds = np.searchsorted(fr, np.arange(n_frames + 1)).tolist()
-    gf, ef = g.features, e.features
+    pairs = _pair_table(g, e, code)
     out: list[frozenset[tuple[Feature, Feature]]] = []
     for f in range(n_frames):
         if same_as[f] != f:
             out.append(out[same_as[f]])
             continue
         lo, hi = bounds[f], bounds[f + 1]
-        aa, bb = a[lo:hi].tolist(), b[lo:hi].tolist()
-        out.append(frozenset(zip(map(gf.__getitem__, aa), map(ef.__getitem__, bb), strict=True)))
+        out.append(frozenset(map(pairs.__getitem__, code[lo:hi].tolist())))
     return out
+
+
+def _pair_table(
+    g: _ModelData, e: _ModelData, codes: IntArray
+) -> dict[int, tuple[Feature, Feature]]:
+    """Return the feature pair of each code ``a * e.n_all + b``, one tuple per pair of models.
+
+    Every touching set of the pair of models holds the same tuple for the same pair (a
+    long noisy demonstration has hundreds of observed states of ~100 pairs each).
+    """
+    pairs = g.pairs.setdefault(e, {})
+    gf, ef = g.features, e.features
+    for c in np.unique(codes).tolist():
+        if c not in pairs:
+            a, b = divmod(c, e.n_all)
+            pairs[c] = (gf[a], ef[b])
+    return pairs

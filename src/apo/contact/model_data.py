@@ -132,6 +132,11 @@ class _ModelData:
         # A weak reference: the cache maps the Polyhedron (weakly) to this object, which must
         # not keep it alive.
         self._poly = weakref.ref(poly)
+        # (G feature, E feature) pairs met with each other model, one tuple per pair code
+        # (:func:`apo.contact.distance_tests._touching`): the observed states share them.
+        self.pairs: weakref.WeakKeyDictionary[_ModelData, dict[int, tuple[Feature, Feature]]] = (
+            weakref.WeakKeyDictionary()
+        )
         V = np.ascontiguousarray(poly.vertices, dtype=np.float64)
         self.V = V
         self.nv, self.ne, self.nf = len(V), len(poly.edges), len(poly.faces)

@@ -754,7 +754,10 @@ class _Tracker:
             top = self.opt.good_confidence
             return min(top, float(np.median(history)) - 0.01) if len(history) >= 3 else top
 
-        if r.confidence < bar(self.confs) or r.quality < bar(self.fits):
+        # Without the colour the observed points hold a hand's: the share they explain
+        # (the quality's fitness) is no bar then.
+        clutter = not self.scene.seg.colour.used
+        if r.confidence < bar(self.confs) or (not clutter and r.quality < bar(self.fits)):
             return False
         rm = self.rmses
         return len(rm) < 3 or r.rmse <= self.opt.rmse_factor * float(np.median(rm))
