@@ -359,12 +359,10 @@ def _run(
     out = outs.given
     floor_share = None
     if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
+        from apo.cli.track import demonstration_from_frames
         from apo.recognition.pipeline import TRACKED_FLOOR_SHARE
 
         floor_share = TRACKED_FLOOR_SHARE
-    if demo.is_dir():  # a frames folder: track, then recognise the tracked poses
-        from apo.cli.track import demonstration_from_frames
-
         G, E, gp, ep = _load_models(demo, args.grasped, args.environment, args.units, None)
         dem: Any = demonstration_from_frames(args, demo, gp, ep, outs)
     else:
