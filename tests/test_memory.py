@@ -455,3 +455,30 @@ def test_distinct_poses_by_hash_are_those_by_bytes(monkeypatch, seed: int) -> No
     monkeypatch.setattr(contacts, "_pose_hashes", lambda w: np.zeros(len(w), dtype=np.uint64))
     got = contacts.distinct_poses(X)  # every pose the same hash: grouped by bytes
     assert all(np.array_equal(a, b) for a, b in zip(want, got, strict=True))
+
+
+def test_pose_defect_in_blocks_is_that_of_all_poses(monkeypatch) -> None:
+    """Poses tested a block at a time: the first defect of the whole sequence, the same
+    message (a non-finite pose anywhere before a bad rotation, before a bad last row)."""
+    import apo.spatial as spatial
+
+    rng = np.random.default_rng(4)
+    demo = add_noise(random_variant(9), sigma_mm=1.0, sigma_deg=1.0, seed=9)
+    cases = []
+    for kinds in ([], ["rot"], ["row", "rot"], ["rot", "nan"], ["row"], ["nan", "nan"]):
+        X = demo.X_EG.copy()
+        for kind in kinds:
+            i = int(rng.integers(0, len(X)))
+            if kind == "nan":
+                X[i, 1, 2] = np.nan
+            elif kind == "rot":
+                X[i, :3, 0] *= 1.01
+            else:
+                X[i, 3, 0] = 1e-3
+        cases.append(X)
+    monkeypatch.setattr(spatial, "DEFECT_BLOCK", 1 << 30)
+    want = [spatial.pose_defect(X) for X in cases]
+    assert want[0] is None and {w[1] for w in want[1:] if w} == {"finite", "rotation", "last row"}
+    for block in (1, 3, 64):
+        monkeypatch.setattr(spatial, "DEFECT_BLOCK", block)
+        assert [spatial.pose_defect(X) for X in cases] == want

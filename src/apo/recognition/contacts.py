@@ -208,14 +208,23 @@ DISTINCT_BLOCK = 4096
 
 def _pose_hashes(words: npt.NDArray[np.uint64]) -> npt.NDArray[np.uint64]:
     """Return a 64-bit hash of each row of ``words`` (the bits of a pose), block by block."""
-    mult = np.random.default_rng(0x9E3779B9).integers(
-        1, 2**63, size=words.shape[1], dtype=np.uint64
-    ) | np.uint64(1)  # fixed odd multipliers: a row's hash is a function of its bits
+    mult = _odd_multipliers(words.shape[1])  # fixed: a row's hash is a function of its bits
     out = np.empty(len(words), dtype=np.uint64)
     for a in range(0, len(words), DISTINCT_BLOCK):
         w = words[a : a + DISTINCT_BLOCK]
         out[a : a + DISTINCT_BLOCK] = ((w ^ (w >> np.uint64(29))) * mult).sum(axis=1)
     return out
+
+
+def _odd_multipliers(k: int) -> npt.NDArray[np.uint64]:
+    """``k`` fixed odd 64-bit numbers (splitmix64's sequence; no ``numpy.random`` import)."""
+    out, x, mask = [], 0x9E3779B97F4A7C15, (1 << 64) - 1
+    for _ in range(k):
+        x = (x + 0x9E3779B97F4A7C15) & mask
+        z = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        out.append((z ^ (z >> 31)) | 1)
+    return np.array(out, dtype=np.uint64)
 
 
 def _distinct_by_bytes(rows: FloatArray) -> tuple[IntArray, IntArray]:
