@@ -215,6 +215,7 @@ class _Window:
     free: FloatArray  # (h, w) depth beyond which the sensor sees through the model
     occluder: npt.NDArray[np.float32] | None
     box: tuple[int, int, int, int] = (0, 0, 0, 0)  # rows and columns holding the mask
+    depth_sigma: float | None = None  # the median depth noise of the mask (None: no mask)
     v0: int = 0  # a crop's first row and column in the window (:func:`_cropped`)
     u0: int = 0
 
@@ -244,7 +245,7 @@ def _cropped(
     occ = None if win.occluder is None else win.occluder[box]
     crop = _Window(
         win.camera, win.depth[box], win.mask[box], win.points[box], win.rays[box],
-        win.scale[box], win.sigma[box], win.free[box], occ, win.box, r0, c0,
+        win.scale[box], win.sigma[box], win.free[box], occ, win.box, win.depth_sigma, r0, c0,
     )  # fmt: skip
     return crop, rendered[box], tri[box]
 
@@ -254,24 +255,30 @@ def _window(
     occluder: npt.ArrayLike | None, sigma: npt.ArrayLike | None, floor: float, k: float,
     max_pixels: int,
 ) -> _Window:  # fmt: skip
-    d = np.asarray(depth, dtype=np.float64)
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
-    ok = d > 0
+    full = np.asarray(depth)
+    ok = np.isfinite(full) & (full > 0)
     if mask is not None:
         ok &= np.asarray(mask, dtype=bool)
     count = int(np.count_nonzero(ok))
     step = max(1, int(np.ceil(np.sqrt(count / max_pixels)))) if count else 1
     cam = camera.subsampled(step)
-    d, ok = d[::step, ::step], ok[::step, ::step]
-    v, u = np.indices(d.shape)
-    rays = np.stack(((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(d.shape)), axis=-1)
+    # Only the pixels kept are converted (the same values as converting the whole window).
+    d = np.asarray(full[::step, ::step], dtype=np.float64)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    ok = ok[::step, ::step]
+    # The rays per column and row, broadcast (the same numbers as per pixel).
+    x = ((np.arange(d.shape[1]) - cam.cx) / cam.fx)[None, :]
+    y = ((np.arange(d.shape[0]) - cam.cy) / cam.fy)[:, None]
+    rays = np.empty((*d.shape, 3))
+    rays[..., 0], rays[..., 1], rays[..., 2] = x, y, 1.0
     P = rays * d[..., None]
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays /= np.sqrt(x * x + y * y + 1.0)[..., None]
     sig = np.zeros(d.shape) if sigma is None else np.asarray(sigma, np.float64)[::step, ::step]
     occ = None if occluder is None else np.asarray(occluder, dtype=np.float32)[::step, ::step]
     scale, free = np.maximum(floor, k * sig), np.maximum(floor, 4.0 * sig)
     box = _bounds(ok)
-    return _Window(cam, d, ok, P, rays, scale, sig, free, occ, box)
+    depth_sigma = float(np.median(scale[ok])) / TUKEY_K if box[1] > box[0] else None
+    return _Window(cam, d, ok, P, rays, scale, sig, free, occ, box, depth_sigma)
 
 
 _Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
@@ -501,7 +508,7 @@ def _contour(
     x = (Pe - t) @ R
     r = np.einsum("ij,ij->i", n_M, x - (E - t) @ R)
     lateral = 0.5 * z / cam.fx
-    depth_sigma = float(np.median(win.scale[win.mask])) / TUKEY_K if win.mask.any() else lateral
+    depth_sigma = lateral if win.depth_sigma is None else win.depth_sigma
     w = min(CONTOUR_WEIGHT_MAX, (depth_sigma / lateral) ** 2)
     return x, n_M, r, win.scale[v, u], np.full(len(r), w)
 
