@@ -327,16 +327,22 @@ def _zbuffer(
 ) -> None:  # fmt: skip
     """Write the nearest candidate of each pixel (``pix``: flat index) into the images.
 
-    Of equal depths the lowest ``t`` wins (as a stable sort by pixel and depth would).
+    Of equal depths the lowest ``t`` wins (as a stable sort by pixel and depth would). The
+    buffers span the candidates' pixels only (a small part of a large window).
     """
-    zbuf = np.full(depth.size, np.inf)
-    np.minimum.at(zbuf, pix, z)
-    tie = np.nonzero(z == zbuf[pix])[0]
-    tbuf = np.full(depth.size, len(ids), dtype=np.int64)
-    np.minimum.at(tbuf, pix[tie], t[tie])
-    hit = tbuf < len(ids)
-    depth.ravel()[hit] = zbuf[hit]
-    tri_img.ravel()[hit] = ids[tbuf[hit]]
+    if len(pix) == 0:
+        return
+    lo = int(pix.min())
+    p = pix - lo
+    size = int(p.max()) + 1
+    zbuf = np.full(size, np.inf)
+    np.minimum.at(zbuf, p, z)
+    tie = np.nonzero(z == zbuf[p])[0]
+    tbuf = np.full(size, len(ids), dtype=np.int64)
+    np.minimum.at(tbuf, p[tie], t[tie])
+    hit = np.flatnonzero(tbuf < len(ids))
+    depth.ravel()[lo + hit] = zbuf[hit]
+    tri_img.ravel()[lo + hit] = ids[tbuf[hit]]
 
 
 @dataclass(frozen=True)
