@@ -235,7 +235,7 @@ def _window(
     )
 
 
-_Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
+_Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
 
 
 def projective_icp(
@@ -414,15 +414,20 @@ def _rows(
     n_M = model.normals[tri[surf][keep]]
     x = (P - t) @ R
     r = np.einsum("ij,ij->i", n_M, x) - model.offsets[tri[surf][keep]]
-    out = [(x, n_M, r, win.scale[surf][keep], np.ones(len(r)))]
+    # The noise moves a point along its ray: the row's Jacobian is that of the distance
+    # along the ray (times the ray's cosine to the face), whose noise does not depend on
+    # the pose (see _normal_equations).
+    u_M = win.rays[surf][keep] @ R
+    g = _cross(u_M, n_M) / np.einsum("ij,ij->i", u_M, n_M)[:, None]
+    out = [(x, n_M, r, win.scale[surf][keep], np.ones(len(r)), g)]
     if silhouette and on.any():
         wrong = vis & ~win.mask & (-diff > win.free)  # the sensor sees through the model
         if not clutter:
             wrong |= win.mask & ~on  # an object pixel where the model renders nothing
         if wrong.any():
             out.append(_contour(X, model, win, wrong, float(np.median(rendered[on]))))
-    x, n, r, scale, weight = (np.concatenate([o[k] for o in out]) for k in range(5))
-    return x, n, r, scale, weight
+    x, n, r, scale, weight, g = (np.concatenate([o[k] for o in out]) for k in range(6))
+    return x, n, r, scale, weight, g
 
 
 def _contour(
@@ -441,7 +446,8 @@ def _contour(
     A = transform_points(X, model.vertices[model.edges[sil, 0]])
     B = transform_points(X, model.vertices[model.edges[sil, 1]])
     if len(sil) == 0 or np.any(A[:, 2] <= 0) or np.any(B[:, 2] <= 0):
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)
+        e = np.zeros(0)
+        return np.zeros((0, 3)), np.zeros((0, 3)), e, e, e, np.zeros((0, 3))
     cam = win.camera
     a2 = np.column_stack((cam.fx * A[:, 0] / A[:, 2] + cam.cx, cam.fy * A[:, 1] / A[:, 2] + cam.cy))
     ab = (
@@ -462,7 +468,7 @@ def _contour(
     lateral = 0.5 * z / cam.fx
     depth_sigma = float(np.median(win.scale[win.mask])) / TUKEY_K if win.mask.any() else lateral
     w = min(CONTOUR_WEIGHT_MAX, (depth_sigma / lateral) ** 2)
-    return x, n_M, r, win.scale[v, u], np.full(len(r), w)
+    return x, n_M, r, win.scale[v, u], np.full(len(r), w), np.zeros((len(r), 3))
 
 
 def _nearest_edge(
@@ -502,20 +508,33 @@ def _with_constraint(rows: _Rows, extra: tuple[FloatArray, FloatArray, FloatArra
     return (
         np.concatenate([rows[0], q]), np.concatenate([rows[1], -n]),
         np.concatenate([rows[2], r]), np.concatenate([rows[3], big]),
-        np.concatenate([rows[4], weight]),
+        np.concatenate([rows[4], weight]), np.concatenate([rows[5], np.zeros((len(r), 3))]),
     )  # fmt: skip
 
 
 def _normal_equations(
     rows: _Rows, scale_k: float
 ) -> tuple[FloatArray, FloatArray, int, float] | None:
-    """Return ``(A, b)`` of the Tukey-weighted rows ``r + J delta``, their count and RMS."""
-    x, n, r, scale, prior = rows
+    """Return ``(A, b)`` of the Tukey-weighted rows ``r + J delta``, their count and RMS.
+
+    A surface row's residual ``r = n . x - d`` (the observed point ``x``'s distance to the
+    face's plane, model frame) is ``c`` times the point's distance to the plane along its
+    ray ``u`` (``c = n . u``); the depth noise moves ``x`` along ``u``. Its Jacobian is
+    taken as that of ``c_0 s`` for the ray distance ``s = r / c`` at ``c_0 = c``: ``J - r
+    (u x n) / c`` in rotation (``g`` holds ``(u x n) / c``; 0 for the other rows). With the
+    plain ``J = [x x n, n]`` the expected squared residual at a pose is the squared error
+    plus ``sigma^2 c^2``, which the pose lowers by turning the faces away from the rays:
+    the minimum of the surface rows moves by that noise term (measured, T-peg at 1 m,
+    ``sigma`` 5 mm, 40 noise draws from the true pose: a mean rotation error of 2.5 deg,
+    0.4 with the ray's Jacobian). The ray distance's noise is the sensor's, the same at
+    every pose, so the rows' expected gradient is zero at the true pose.
+    """
+    x, n, r, scale, prior, g = rows
     w = prior * tukey_weights(r, np.maximum(scale, scale_k))
     used = w > 0
     if np.count_nonzero(used) < 6:
         return None
-    J = np.hstack([_cross(x[used], n[used]), n[used]])
+    J = np.hstack([_cross(x[used], n[used]) - r[used, None] * g[used], n[used]])
     w, r = w[used], r[used]
     A = (J * w[:, None]).T @ J
     b = J.T @ (w * r)
