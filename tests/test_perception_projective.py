@@ -301,3 +301,52 @@ def test_rotation_unbiased_far_from_the_camera(seed: int) -> None:
         turns.append(Rotation.from_matrix(X_true[:3, :3].T @ res.X_CM[:3, :3]).as_rotvec())
     bias = float(np.degrees(np.linalg.norm(np.mean(turns, axis=0))))
     assert bias < 0.6, (distance, elevation, azimuth, c, bias)
+
+
+def _before_a_wall(X_CM: np.ndarray, c: float, seed: int):
+    """Noisy depth of the T-peg 10 mm in front of a 20 mm slab (the environment, its front
+    face 10 mm behind the peg's middle), the environment's depth, and the object pixels
+    split as the tracker does: those within ``4 sigma`` of the environment's surface are cut
+    (``shared``), the rest are the mask."""
+    (V, T), _ = peg_and_slot()
+    peg, _ = rasterize(transform_points(X_CM, V), T, CAMERA)
+    centre = transform_points(X_CM, np.array([[0.0, 0.0, 0.02]]))[0] + [0.0, 0.0, 0.02]
+    env, _ = rasterize(*box_triangles((0.12, 0.12, 0.02), centre), CAMERA)
+    depth = np.where((peg > 0) & ((env == 0) | (peg < env)), peg, env)
+    objects = depth > 0
+    depth = np.where(objects, depth, X_CM[2, 3] + 0.2)
+    rng = np.random.default_rng(seed)
+    noisy = (depth + rng.normal(0.0, 1.0, depth.shape) * c * depth**2).astype(np.float32)
+    near = np.abs(noisy - env) <= np.maximum(0.004, 4 * c * noisy.astype(np.float64) ** 2)
+    cut = objects & (env > 0) & near
+    return noisy, env, objects & ~cut, cut
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_part_near_the_environment_is_not_biased_by_the_cut(seed: int) -> None:
+    """The environment's cut keeps the part's pixels near it only when their noise took them
+    nearer the camera; given back as ``shared`` they count where the model renders the part.
+
+    T-peg 10 mm in front of a slab at 0.93 and 0.85 m, ``sigma`` 3-4 mm, 16 noise draws from the
+    true pose: 20-40 % of the peg's pixels are cut; the mean error was 2.9 and 1.8 deg, 1.9
+    and 1.1 mm with the mask alone, 0.53 and 0.25 deg, 0.08 and 0.12 mm with ``shared``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    distance, elevation, azimuth = rng.uniform(0.8, 1.0), rng.uniform(25, 55), rng.uniform(0, 60)
+    c = rng.uniform(4e-3, 6e-3)
+    (V, T), _ = peg_and_slot()
+    faces = face_planes(V, T)
+    X_true = peg_pose(distance, elevation, azimuth)
+    turns, moves = [], []
+    for draw in range(16):
+        depth, env, mask, cut = _before_a_wall(X_true, c, 100 * seed + draw)
+        res = projective_icp(depth, CAMERA, faces, X_true, mask=mask, occluder=env, shared=cut,
+                             sigma=c * depth.astype(np.float64) ** 2, floor=0.002,
+                             start_scale=0.01)  # fmt: skip
+        turns.append(Rotation.from_matrix(X_true[:3, :3].T @ res.X_CM[:3, :3]).as_rotvec())
+        moves.append(res.X_CM[:3, 3] - X_true[:3, 3])
+    turn = float(np.degrees(np.linalg.norm(np.mean(turns, axis=0))))
+    move = float(np.linalg.norm(np.mean(moves, axis=0)) * 1e3)
+    assert turn < 0.8 and move < 0.4, (distance, elevation, azimuth, c, turn, move)

@@ -19,7 +19,11 @@ Each iteration (see :func:`projective_icp`):
 2. **surface rows**: pair each object pixel with the face rendered there, except faces seen
    at a grazing angle (normal more than ``max_angle`` from the viewing ray: there the pixel
    grid, not the surface, decides which face a pixel falls on); the residual is the
-   observed point's signed distance to the face's plane;
+   observed point's signed distance to the face's plane, its Jacobian that of the distance
+   along the pixel's ray (the noise's direction; :func:`_normal_equations`). Pixels left
+   out of the mask for being within the noise of the environment (``shared``) count here
+   too where the model renders the part in front of the environment: the cut alone keeps
+   only those whose noise took them nearer the camera;
 3. **contour rows**: a pixel that the observation and the rendering put on opposite sides
    of the silhouette (an object pixel where the model renders nothing; a model pixel where
    the sensor sees more than ``4 sigma`` behind it) is paired with the plane through the
@@ -208,18 +212,21 @@ class _Window:
     sigma: FloatArray  # (h, w) depth noise
     free: FloatArray  # (h, w) depth beyond which the sensor sees through the model
     occluder: npt.NDArray[np.float32] | None
+    shared: npt.NDArray[np.bool_]  # (h, w) object pixels within the noise of the occluder
 
 
 def _window(
     depth: npt.ArrayLike, camera: Camera, mask: npt.ArrayLike | None,
     occluder: npt.ArrayLike | None, sigma: npt.ArrayLike | None, floor: float, k: float,
-    max_pixels: int,
+    max_pixels: int, shared: npt.ArrayLike | None = None,
 ) -> _Window:  # fmt: skip
     d = np.asarray(depth, dtype=np.float64)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
     ok = d > 0
+    near = np.zeros(d.shape, dtype=bool) if shared is None else ok & np.asarray(shared, bool)
     if mask is not None:
         ok &= np.asarray(mask, dtype=bool)
+    near &= ~ok
     count = int(np.count_nonzero(ok))
     step = max(1, int(np.ceil(np.sqrt(count / max_pixels)))) if count else 1
     cam = camera.subsampled(step)
@@ -231,8 +238,9 @@ def _window(
     sig = np.zeros(d.shape) if sigma is None else np.asarray(sigma, np.float64)[::step, ::step]
     occ = None if occluder is None else np.asarray(occluder, dtype=np.float32)[::step, ::step]
     return _Window(
-        cam, d, ok, P, rays, np.maximum(floor, k * sig), sig, np.maximum(floor, 4.0 * sig), occ
-    )
+        cam, d, ok, P, rays, np.maximum(floor, k * sig), sig, np.maximum(floor, 4.0 * sig), occ,
+        near[::step, ::step],
+    )  # fmt: skip
 
 
 _Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
@@ -258,6 +266,7 @@ def projective_icp(
     silhouette: bool = True,
     constraint: Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]] | None = None,
     clutter: bool = False,
+    shared: npt.ArrayLike | None = None,
 ) -> ProjectiveResult:
     """Projective point-to-plane ICP of a model to the object's pixels of a depth image.
 
@@ -310,13 +319,19 @@ def projective_icp(
         The mask may hold other things' pixels (no colour cue: a hand holding the part):
         occluders in front of the model (:func:`occluders`) give no rows, nor do its pixels
         outside the rendered silhouette (see the module notes).
+    shared : ndarray of bool, shape (H, W), optional
+        Object pixels left out of ``mask`` for being within the noise of the ``occluder``'s
+        surface (the environment's pixels, and the part's where it is near the
+        environment: only those whose noise took them nearer the camera pass the cut, so
+        the cut alone biases the part's pose). Each gives a surface row where the model
+        renders the part at the pose, in front of the occluder, and no contour row.
 
     Returns
     -------
     ProjectiveResult
     """
     X = np.asarray(X_CM_init, dtype=np.float64).copy()
-    win = _window(depth, camera, mask, occluder, sigma, floor, tukey_k, max_pixels)
+    win = _window(depth, camera, mask, occluder, sigma, floor, tukey_k, max_pixels, shared)
     n_obs = int(np.count_nonzero(win.mask))
     radius = float(np.linalg.norm(model.vertices - model.vertices.mean(0), axis=1).max())
     final_scale = float(win.scale[win.mask].max(initial=floor))
@@ -404,8 +419,8 @@ def _rows(
     vis = on.copy()
     if win.occluder is not None:
         vis &= ~((win.occluder > 0) & (win.occluder < rendered))
-    surf = win.mask & vis
     diff = rendered - win.depth
+    surf = (win.mask | (win.shared & (-diff <= win.free))) & vis
     if clutter:
         surf &= ~occluders(diff, surf, np.maximum(win.scale, scale_k), np.maximum(1e-3, win.sigma))
     n_C = model.normals[tri[surf]] @ R.T
