@@ -284,23 +284,37 @@ def test_rotation_unbiased_far_from_the_camera(seed: int) -> None:
     to 1.12 on seeds 0-3); with the ray distance's Jacobian (``projective._normal_equations``)
     0.42 and 0.28 (0.21 to 0.42).
     """
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    distance, elevation, azimuth = rng.uniform(0.9, 1.0), rng.uniform(25, 55), rng.uniform(0, 60)
-    c = rng.uniform(5e-3, 6e-3)
-    (V, T), _ = peg_and_slot()
-    faces = face_planes(V, T)
-    X_true = peg_pose(distance, elevation, azimuth)
-    turns = []
+    view, c, X_true = _far_view(seed, 0.9, 5e-3)
+    faces = face_planes(*peg_and_slot()[0])
+    found = []
     for draw in range(24):
         depth, mask = observe(X_true, c, 100 * seed + draw)
         sigma = c * depth.astype(np.float64) ** 2
         res = projective_icp(depth, CAMERA, faces, X_true, mask=mask, sigma=sigma,
                              floor=0.002, start_scale=0.01)  # fmt: skip
-        turns.append(Rotation.from_matrix(X_true[:3, :3].T @ res.X_CM[:3, :3]).as_rotvec())
-    bias = float(np.degrees(np.linalg.norm(np.mean(turns, axis=0))))
-    assert bias < 0.6, (distance, elevation, azimuth, c, bias)
+        found.append(res.X_CM)
+    turn, _ = _mean_error(found, X_true)
+    assert turn < 0.6, (view, c, turn)
+
+
+def _far_view(seed: int, nearest: float, c_least: float) -> tuple[tuple, float, np.ndarray]:
+    """A random view of the T-peg ``nearest`` to 1 m away, elevation 25-55 deg, azimuth 0-60
+    deg, ``c`` from ``c_least`` to 6 mm/m^2: the view, ``c`` and ``X_CM``."""
+    rng = np.random.default_rng(seed)
+    view = rng.uniform(nearest, 1.0), rng.uniform(25, 55), rng.uniform(0, 60)
+    return view, rng.uniform(c_least, 6e-3), peg_pose(*view)
+
+
+def _mean_error(found: list[np.ndarray], X_true: np.ndarray) -> tuple[float, float]:
+    """The mean error over noise draws (the bias): rotation (deg) and translation (mm)."""
+    from scipy.spatial.transform import Rotation
+
+    turns = [Rotation.from_matrix(X_true[:3, :3].T @ X[:3, :3]).as_rotvec() for X in found]
+    moves = [X[:3, 3] - X_true[:3, 3] for X in found]
+    return (
+        float(np.degrees(np.linalg.norm(np.mean(turns, axis=0)))),
+        float(np.linalg.norm(np.mean(moves, axis=0)) * 1e3),
+    )
 
 
 def _before_a_wall(X_CM: np.ndarray, c: float, seed: int):
@@ -331,22 +345,14 @@ def test_part_near_the_environment_is_not_biased_by_the_cut(seed: int) -> None:
     true pose: 20-40 % of the peg's pixels are cut; the mean error was 2.9 and 1.8 deg, 1.9
     and 1.1 mm with the mask alone, 0.53 and 0.25 deg, 0.08 and 0.12 mm with ``shared``.
     """
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    distance, elevation, azimuth = rng.uniform(0.8, 1.0), rng.uniform(25, 55), rng.uniform(0, 60)
-    c = rng.uniform(4e-3, 6e-3)
-    (V, T), _ = peg_and_slot()
-    faces = face_planes(V, T)
-    X_true = peg_pose(distance, elevation, azimuth)
-    turns, moves = [], []
+    view, c, X_true = _far_view(seed, 0.8, 4e-3)
+    faces = face_planes(*peg_and_slot()[0])
+    found = []
     for draw in range(16):
         depth, env, mask, cut = _before_a_wall(X_true, c, 100 * seed + draw)
         res = projective_icp(depth, CAMERA, faces, X_true, mask=mask, occluder=env, shared=cut,
                              sigma=c * depth.astype(np.float64) ** 2, floor=0.002,
                              start_scale=0.01)  # fmt: skip
-        turns.append(Rotation.from_matrix(X_true[:3, :3].T @ res.X_CM[:3, :3]).as_rotvec())
-        moves.append(res.X_CM[:3, 3] - X_true[:3, 3])
-    turn = float(np.degrees(np.linalg.norm(np.mean(turns, axis=0))))
-    move = float(np.linalg.norm(np.mean(moves, axis=0)) * 1e3)
-    assert turn < 0.8 and move < 0.4, (distance, elevation, azimuth, c, turn, move)
+        found.append(res.X_CM)
+    turn, move = _mean_error(found, X_true)
+    assert turn < 0.8 and move < 0.4, (view, c, turn, move)
