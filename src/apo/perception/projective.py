@@ -58,12 +58,13 @@ Each iteration (see :func:`projective_icp`):
    deep in its hole, a few pixels in view, once turned 90 deg in one step).
 
 It stops when a step moves the model by less than ``tolerance`` and the scale has reached
-the noise's, or after ``iterations`` steps. A run that goes back and forth between two poses
-at the final scale (the model back within ``CYCLE_TOLERANCE`` of where it was two steps
-before: Tukey weights and contour pixels switching) stops at once with the pose the
-iteration limit would have ended on (the steps left alternate between the two); measured on
-variant seed 1, a fifth of the runs, up to 10 steps each, the pose the limit gives within
-0.03 micrometres but in a few runs.
+the noise's, or after ``iterations`` steps. A run that goes round a cycle of poses at the
+final scale (the model back within ``CYCLE_TOLERANCE`` of where it was 2 to
+``CYCLE_LONGEST`` steps before: Tukey weights and contour pixels switching) stops at once
+with the pose the iteration limit would have ended on (the steps left go round the cycle);
+measured on variant seed 1, a fifth of the runs, up to 10 steps each, the pose the limit
+gives within 0.03 micrometres but in a few runs (two-step cycles, session 5; cycles of 3
+steps appeared at 1 m with the ray distance's Jacobian, session 6).
 """
 
 from __future__ import annotations
@@ -92,7 +93,11 @@ CONTOUR_WEIGHT_MAX = 25.0
 
 CYCLE_TOLERANCE = 1e-6
 """Metres: a step at the final scale that brings the model (every vertex) back within this of
-where it was two steps before closes a limit cycle (see :func:`projective_icp`)."""
+where it was 2 to ``CYCLE_LONGEST`` steps before closes a limit cycle (see
+:func:`projective_icp`)."""
+
+CYCLE_LONGEST = 4
+"""The longest limit cycle (steps) :func:`projective_icp` detects."""
 
 
 @dataclass(frozen=True)
@@ -338,7 +343,7 @@ def projective_icp(
     scale_k = max(start_scale, final_scale)
     cos_min = float(np.cos(max_angle))
     pairs, rms, converged, steps = 0, float("inf"), False, 0
-    back: list[FloatArray] = []  # the poses before the last two steps at the final scale
+    back: list[FloatArray] = []  # the poses before the last steps at the final scale
     for it in range(1, iterations + 1 if n_obs else 1):  # no object pixel: no evidence
         steps = it
         rows = _rows(X, model, win, cos_min, scale_k, silhouette=silhouette, clutter=clutter)
@@ -353,15 +358,16 @@ def projective_icp(
         moved = float(np.linalg.norm(delta[:3]) * radius + np.linalg.norm(delta[3:]))
         if moved > scale_k:  # trust region: no farther than the pairs' reach
             delta *= scale_k / moved
-        back = [*back[-1:], X] if scale_k <= final_scale else []
+        back = [*back[1 - CYCLE_LONGEST :], X] if scale_k <= final_scale else []
         X = X @ np.linalg.inv(_exp_se3(delta))
         if moved < tolerance and scale_k <= final_scale:
             converged = True
             break
-        if len(back) == 2 and _moved(model.vertices, X, back[0]) < CYCLE_TOLERANCE:
-            # Back where it was two steps ago: the steps left alternate between the two poses
+        cycle = _cycle(model.vertices, X, back)
+        if cycle:
+            # Back where it was p steps ago: the steps left go round the same p poses
             # (Tukey weights and contour pixels switching); the limit's pose, at once.
-            X = X if (iterations - it) % 2 == 0 else back[1]
+            X = cycle[(iterations - it) % len(cycle)]
             break
         scale_k = max(scale_k / 2.0, final_scale)
     return ProjectiveResult(orthonormalised(X), pairs, n_obs, rms, steps, converged)
@@ -388,6 +394,18 @@ def occluders(
     labels, _ = ndimage.label(weak, structure=np.ones((3, 3), dtype=bool))
     hit = np.unique(labels[seeds])
     return weak & np.isin(labels, hit[hit > 0])
+
+
+def _cycle(V: FloatArray, X: FloatArray, back: list[FloatArray]) -> list[FloatArray]:
+    """Return the poses of the limit cycle ``X`` closes (``X`` first), or [] if none.
+
+    ``back`` holds the poses before the last steps, oldest first: ``X`` back within
+    ``CYCLE_TOLERANCE`` of ``back[-p]`` goes round ``X, back[-p + 1], ..., back[-1]``.
+    """
+    for p in range(2, len(back) + 1):
+        if _moved(V, X, back[-p]) < CYCLE_TOLERANCE:
+            return [X, *back[len(back) - p + 1 :]]
+    return []
 
 
 def _moved(V: FloatArray, X: FloatArray, Y: FloatArray) -> float:
