@@ -253,6 +253,18 @@ def test_a_limit_cycle_stops_with_the_pose_of_the_iteration_limit(
     assert stopped >= 3  # the case is met (9 of 12 when written)
 
 
+def test_cycles_of_three_and_four_steps_are_found() -> None:
+    import apo.perception.projective as projective
+
+    (V, _), _ = peg_and_slot()
+    A, B, C, D = (pose_from_twist(np.r_[0.0, 0.0, 0.01 * k, 0.001 * k, 0.0, 0.0]) for k in range(4))
+    found = projective._cycle(V, A, [A, B, C])  # A -> B -> C -> A: the steps left go round
+    assert len(found) == 3 and found[0] is A and found[1] is B and found[2] is C
+    assert len(projective._cycle(V, A, [A, B, C, D])) == 4
+    assert len(projective._cycle(V, A + 1e-9, [D, C, A, B])) == 2
+    assert projective._cycle(V, D, [A, B, C]) == [] and projective._cycle(V, A, [A]) == []
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_nearest_edge_and_cross_are_the_broadcast_forms_bit_for_bit(seed: int) -> None:
     from apo.perception.projective import _cross, _nearest_edge
