@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from apo.arrays import unique
 from apo.constants import tol
 from apo.errors import GeometryError
 from apo.typing import BoolArray, FloatArray, IntArray
@@ -242,7 +243,7 @@ def polyhedron_from_triangles(
     V, T = _check_mesh_arrays(vertices, triangles, label)
 
     # Keep referenced vertices only (order of first index), then merge close ones.
-    used = np.unique(T)
+    used = unique(T)
     V = V[used]
     T = np.searchsorted(used, T).astype(np.int64)
     lo, hi = V.min(axis=0), V.max(axis=0)
@@ -313,7 +314,7 @@ def _check_mesh_arrays(
             f"{label}: triangle indices out of range [0, {len(V)}): "
             f"min {int(T.min())}, max {int(T.max())}"
         )
-    bad = ~np.isfinite(V[np.unique(T)])
+    bad = ~np.isfinite(V[unique(T)])
     if bad.any():
         raise GeometryError(
             f"{label}: {int(bad.any(axis=1).sum())} vertex coordinate row(s) are NaN or infinite"
@@ -431,7 +432,7 @@ def _check_closed_manifold(V: FloatArray, T: IntArray, label: str) -> IntArray:
     incoming = (np.arange(len(he)) // 3) * 3 + (np.arange(len(he)) + 2) % 3
     nxt = twin[incoming]
     n_cycles, cyc = connected_components(len(he), np.arange(len(he)), nxt)
-    n_used = len(np.unique(T))
+    n_used = len(unique(T))
     if n_cycles != n_used:
         per_vertex = np.zeros(len(V), dtype=np.int64)
         first_of_cycle = np.unique(cyc, return_index=True)[1]
@@ -602,7 +603,7 @@ def _face_normals(
 
 def _corner_vertices(V: FloatArray, feature_edges: IntArray) -> BoolArray:
     """Mark corner vertices: on >= 3 feature edges, or on 2 that are not collinear."""
-    fe = np.unique(np.sort(feature_edges, axis=1), axis=0)
+    fe = unique(np.sort(feature_edges, axis=1), axis=0)
     nbrs: dict[int, list[int]] = {}
     for a, b in fe:
         nbrs.setdefault(int(a), []).append(int(b))
@@ -1412,7 +1413,7 @@ def _local_solid_vertex(poly: Polyhedron, v: int) -> LocalSolid:
             if step > 0 and (concave_after[k - 1] or reflex[k]):
                 if reflex[k] and not concave_after[k - 1]:
                     current.append(int(corners[k, 0]))  # a reflex face closes this piece too
-                pieces.append(np.unique(np.asarray(current, dtype=np.int64)))
+                pieces.append(unique(np.asarray(current, dtype=np.int64)))
                 current = []
             if step < k_n:
                 current.append(int(corners[k, 0]))

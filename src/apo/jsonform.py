@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -35,15 +37,21 @@ from apo.errors import InputFormatError
 from apo.spatial import pose_from_position_quaternion, position_quaternion_from_pose
 from apo.typing import FloatArray
 
+_ESCAPE: Callable[[str], str] = json.encoder.encode_basestring_ascii
+
 __all__ = [
     "JSON_TEXT_DEPTH",
     "JsonItems",
     "JsonReader",
+    "RawJson",
     "json_chunks",
+    "json_str",
+    "one_line_encoder",
     "pose_to_dict",
     "rounded",
     "rounded_list",
     "rounded_rows",
+    "rounded_texts",
 ]
 
 _UNIT_TOLERANCE = tol.json_unit_norm  # why these two differ: apo.constants
@@ -53,6 +61,51 @@ _QUATERNION_TOLERANCE = tol.json_quaternion_norm
 def rounded(x: float, nd: int = 9) -> float:
     """Return ``x`` as a float rounded to ``nd`` decimals (for JSON output)."""
     return float(round(float(x), nd))
+
+
+#: ``"%.9f"`` texts of numbers below this size (in magnitude) have at most 15 significant
+#: digits: :func:`rounded_texts` takes them as they are (trailing zeros dropped).
+_FIXED_BELOW = 1e6
+_BELOW_1E4 = re.compile(r",-?0\.0000[0-9]*(?=,)")
+
+
+def rounded_texts(values: Sequence[float]) -> list[str]:
+    """Return ``[repr(rounded(v)) for v in values]`` (JSON numbers) for finite floats.
+
+    Made at once: one ``"%.9f"`` format of all the values, trailing zeros cut by regular
+    expressions (twice as fast as ``round`` and ``repr`` per value; task.json has tens of
+    thousands). The same text: ``round(v, 9)`` is the double nearest to the correctly
+    rounded decimal that ``"%.9f"`` prints, and below 1e6 that decimal has at most 15
+    significant digits, so it is the shortest text of that double, i.e. ``repr``'s, except
+    that ``repr`` writes magnitudes below 1e-4 with an exponent (done for those only). Larger
+    or non-finite values are converted one by one (``repr``: ``nan``, ``inf``).
+    """
+    if not len(values):
+        return []
+    if not all(-_FIXED_BELOW < v < _FIXED_BELOW for v in (min(values), max(values))):
+        return [repr(round(float(v), 9)) for v in values]
+    text = ("%.9f," * len(values)) % tuple(values)  # each "%.9f" ends with a comma
+    text = "," + ",".join(map(str.rstrip, text.split(","), repeat("0"))).replace(".,", ".0,")
+    if "0.0000" in text:
+        text = _BELOW_1E4.sub(_exponent_form, text)
+    return text.split(",")[1:-1]
+
+
+def _exponent_form(m: re.Match[str]) -> str:
+    """``,`` and the ``repr`` of a number written ``0.0000...`` (an exponent unless zero)."""
+    v = float(m.group()[1:])
+    return f",{v!r}" if v else m.group()
+
+
+def json_str(s: str) -> str:
+    """Return ``s`` as a JSON string, as :func:`json.dumps` writes it (ASCII, escaped)."""
+    return _ESCAPE(s)
+
+
+class RawJson(str):
+    """JSON text that :func:`json_chunks` writes as it is (an item made as text already)."""
+
+    __slots__ = ()
 
 
 def rounded_list(a: npt.ArrayLike, scale: float = 1.0) -> list[float]:
@@ -248,7 +301,7 @@ def json_chunks(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> Iterator[str]:
     items of a long array are never in memory whole, only one chunk of
     ``JSON_CHUNK_PIECES`` pieces.
     """
-    flat = _one_line_encoder()
+    flat = one_line_encoder()
     out: list[str] = []
     nested = (dict, list, tuple, JsonItems)
 
@@ -262,6 +315,9 @@ def json_chunks(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> Iterator[str]:
         )
 
     def put(v: Any, level: int) -> Iterator[str]:
+        if type(v) is RawJson:
+            out.append(v)
+            return
         if plain(v, level):
             out.append(flat(list(v) if isinstance(v, JsonItems) else v))
             return
@@ -286,7 +342,7 @@ def json_chunks(data: Any, *, depth: int = JSON_TEXT_DEPTH) -> Iterator[str]:
     yield "".join(out)
 
 
-def _one_line_encoder() -> Callable[[Any], str]:
+def one_line_encoder() -> Callable[[Any], str]:
     """Return ``json.dumps(v, separators=(", ", ": "))`` as a function, made once.
 
     ``JSONEncoder.encode`` builds a new C encoder at every call (a few microseconds: most

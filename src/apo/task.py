@@ -21,7 +21,18 @@ import numpy as np
 from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
 from apo.errors import InputFormatError
-from apo.jsonform import JsonItems, JsonReader, json_chunks, rounded, rounded_list, rounded_rows
+from apo.jsonform import (
+    JsonItems,
+    JsonReader,
+    RawJson,
+    json_chunks,
+    json_str,
+    one_line_encoder,
+    rounded,
+    rounded_list,
+    rounded_rows,
+    rounded_texts,
+)
 from apo.spatial import pose_from_position_quaternion, quaternions_from_matrices
 from apo.transitions import SubSkill, SubSkillKind
 from apo.typing import FloatArray
@@ -308,17 +319,26 @@ def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
     time and written as they are made: the document of a long task (thousands of states)
     is never held whole, as a dictionary or as text.
     """
-    return json_chunks(_task_dict(task, lazy=True), depth=depth)
+    return json_chunks(_task_dict(task, lazy=True, lines=depth == 2), depth=depth)
 
 
-def _task_dict(task: TaskModel, *, lazy: bool) -> dict[str, Any]:
-    """:func:`task_to_dict`; ``lazy``: its long arrays as :class:`apo.outputs.JsonItems`."""
+def _task_dict(task: TaskModel, *, lazy: bool, lines: bool = False) -> dict[str, Any]:
+    """:func:`task_to_dict`; ``lazy``: its long arrays as :class:`apo.outputs.JsonItems`.
+
+    ``lines`` (with ``lazy``, for a text of depth 2: a state per line): the states are made
+    as their lines of text (:func:`_state_lines`) instead of dictionaries.
+    """
     head = task_head(task)  # checks the units
     k = 1.0 / UNITS[task.units]
-    states = _in_blocks(task.states, lambda b: _states_to_dicts(b, k), lazy)
-    transitions = _in_blocks(
-        task.transitions, lambda b: [_transition_to_dict(t, k) for t in b], lazy
-    )
+    if lazy and lines:
+        memo: dict[Any, Any] = {}
+        states = _in_blocks(task.states, lambda b: _state_lines(b, k, memo), lazy)
+        transitions = _in_blocks(task.transitions, lambda b: _transition_lines(b, k, memo), lazy)
+    else:
+        states = _in_blocks(task.states, lambda b: _states_to_dicts(b, k), lazy)
+        transitions = _in_blocks(
+            task.transitions, lambda b: [_transition_to_dict(t, k) for t in b], lazy
+        )
     rejected = _in_blocks(task.rejected, lambda b: [_rejected_to_dict(r) for r in b], lazy)
     extra = head.pop("extra", None)
     return {
@@ -377,6 +397,98 @@ def _states_to_dicts(states: Sequence[State], k: float) -> list[dict[str, Any]]:
     return [
         _state_to_dict(st, k, q, els) for st, q, els in zip(states, quats, elements, strict=True)
     ]
+
+
+_STATE_LINE = (
+    '{{"id": {}, "frames": [{}, {}], "times": [{}, {}], "singular": {}, {}, "elements": [{}], '
+    '"pose": {{"position": [{}, {}, {}], "quaternion": [{}, {}, {}, {}]}}, "pose_frame": {}, '
+    '"pose_converged": {}, "same_as": {}}}'
+)
+
+
+def _state_lines(states: Sequence[State], k: float, memo: dict[Any, Any]) -> list[Any]:
+    """Return the JSON forms of ``states`` as :func:`json_chunks` writes them, as text lines.
+
+    The same text as :func:`_states_to_dicts` encoded (tested), made without the
+    dictionaries: the numbers of all the states at once (:func:`rounded_texts`), the parts
+    that repeat (DOF counts, an element's features, its normals) once per ``memo``. Where a
+    number is not finite, or an id not a string, the dictionaries instead.
+    """
+    if not states:
+        return []
+    quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in states]))
+    pos = np.array([np.asarray(st.X_EG, dtype=float)[:3, 3] for st in states])
+    times = np.array([st.times for st in states], dtype=float)
+    nums = np.concatenate([times, pos if k == 1.0 else pos * k, quats], axis=1)
+    els = [e for st in states for e in st.elements]
+    points = np.array([e.point for e in els], dtype=float).reshape(-1, 3)
+    if k != 1.0:
+        points = points * k
+    if not (np.isfinite(nums).all() and np.isfinite(points).all()) or not all(
+        isinstance(st.id, str) and isinstance(st.same_as, str | None) for st in states
+    ):
+        return _states_to_dicts(states, k)
+    texts = rounded_texts(nums.ravel().tolist() + points.ravel().tolist())
+    try:
+        elements = _element_texts(els, texts[9 * len(states) :], memo)
+    except ValueError:  # a normal that is not finite
+        return _states_to_dicts(states, k)
+    out: list[Any] = []
+    j = 0
+    for i, st in enumerate(states):
+        n, t = len(st.elements), texts[9 * i : 9 * i + 9]
+        out.append(RawJson(_STATE_LINE.format(
+            json_str(st.id), int(st.frames[0]), int(st.frames[1]), t[0], t[1],
+            "true" if st.singular else "false", _dof_text(st, memo),
+            ", ".join(elements[j : j + n]), *t[2:],
+            "null" if st.pose_frame is None else int(st.pose_frame),
+            "true" if st.pose_converged else "false",
+            "null" if st.same_as is None else json_str(st.same_as),
+        )))  # fmt: skip
+        j += n
+    return out
+
+
+def _dof_text(s: State, memo: dict[Any, Any]) -> str:
+    """``"fig25": [...], "six": {...}`` of a state's JSON line (once per distinct counts)."""
+    key = ("dof", tuple(s.fig25), *(tuple(s.six[sp]) for sp in SPACES))
+    text = memo.get(key)
+    if text is None:
+        six = ", ".join(f'"{sp}": [{", ".join(str(int(v)) for v in s.six[sp])}]' for sp in SPACES)
+        text = f'"fig25": [{", ".join(str(int(v)) for v in s.fig25)}], "six": {{{six}}}'
+        memo[key] = text
+    return text
+
+
+def _element_texts(
+    els: Sequence[Element], points: Sequence[str], memo: dict[Any, Any]
+) -> list[str]:
+    """Return the JSON texts of contact elements given their points' texts (three each).
+
+    The features' and the normals' texts are made once per ``memo``. Raises ValueError at a
+    normal that is not finite.
+    """
+    out = []
+    it = iter(points)
+    for e, point in zip(els, map(", ".join, zip(it, it, it, strict=True)), strict=True):
+        head = memo.get((e.kind, e.grasped, e.environment))
+        if head is None:
+            head = memo[(e.kind, e.grasped, e.environment)] = (
+                f'{{"kind": {json_str(str(e.kind))}, "grasped": [{json_str(e.grasped[0])}, '
+                f'{int(e.grasped[1])}], "environment": [{json_str(e.environment[0])}, '
+                f'{int(e.environment[1])}], "point": ['
+            )
+        normals = np.asarray(e.normals, dtype=float)
+        tail = memo.get(key := normals.tobytes())
+        if tail is None:
+            rows = normals.reshape(-1, 3)
+            if not np.isfinite(rows).all():
+                raise ValueError("normal not finite")
+            nums = rounded_texts(rows.ravel().tolist())
+            text = ", ".join(f"[{', '.join(nums[r : r + 3])}]" for r in range(0, len(nums), 3))
+            tail = memo[key] = f'], "normals": [{text}]}}'
+        out.append(head + point + tail)
+    return out
 
 
 def _rejected_to_dict(r: Rejected) -> dict[str, Any]:
@@ -456,6 +568,66 @@ def element_to_dict(e: Element, k: float) -> dict[str, Any]:
 
 def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
     """JSON form of a transition, lengths times ``k`` (metres to the task's units)."""
+    d = _transition_fields(t)
+    d["subskills"] = [
+        {
+            "kind": str(u.kind),
+            "space": u.space,
+            "type": u.type,
+            "direction": rounded_list(np.zeros(3) if u.direction is None else u.direction),
+            "point": None if u.point is None else rounded_list(u.point, k),
+            "source": u.source,
+            "subspace": rounded_rows(u.subspace),
+        }
+        for u in t.subskills
+    ]
+    return d
+
+
+def _transition_lines(
+    transitions: Sequence[Transition], k: float, memo: dict[Any, Any]
+) -> list[Any]:
+    """Return the JSON forms of ``transitions`` as :func:`json_chunks` writes them, as text lines.
+
+    :func:`_transition_to_dict` encoded (tested): the fields but the sub-skills by the JSON
+    encoder, the sub-skills' numbers all at once (:func:`rounded_texts`); where one is not
+    finite, the dictionaries instead.
+    """
+    nums: list[float] = []
+    sizes: list[tuple[int, int, int]] = []
+    for t in transitions:
+        for u in t.subskills:
+            d = np.asarray(np.zeros(3) if u.direction is None else u.direction, dtype=float)
+            p = np.asarray(() if u.point is None else u.point, dtype=float).ravel()
+            r = np.asarray(u.subspace, dtype=float).reshape(-1, 3).ravel()
+            nums += d.ravel().tolist() + (p if k == 1.0 else p * k).tolist() + r.tolist()
+            sizes.append((d.size, -1 if u.point is None else len(p), len(r)))
+    if not np.isfinite(np.array(nums, dtype=float)).all():
+        return [_transition_to_dict(t, k) for t in transitions]
+    flat, texts, i, j, out = one_line_encoder(), rounded_texts(nums), 0, 0, []
+    for t in transitions:
+        subs = []
+        for u in t.subskills:
+            nd, npt, nr = sizes[j]
+            key = ("subskill", str(u.kind), u.space, u.type, u.source)
+            head, mid = memo.get(key) or memo.setdefault(key, (
+                f'{{"kind": {flat(str(u.kind))}, "space": {flat(u.space)}, '
+                f'"type": {flat(u.type)}, "direction": [',
+                f', "source": {flat(u.source)}, "subspace": ['))  # fmt: skip
+            a, b = i + nd, i + nd + max(npt, 0)
+            point = "null" if npt < 0 else f"[{', '.join(texts[a:b])}]"
+            rows = ", ".join(f"[{', '.join(texts[c : c + 3])}]" for c in range(b, b + nr, 3))
+            subs.append(f'{head}{", ".join(texts[i:a])}], "point": {point}{mid}{rows}]}}')
+            i, j = b + nr, j + 1
+        line = flat(_transition_fields(t))
+        if subs:
+            line = line.replace('"subskills": []', f'"subskills": [{", ".join(subs)}]', 1)
+        out.append(RawJson(line))
+    return out
+
+
+def _transition_fields(t: Transition) -> dict[str, Any]:
+    """:func:`_transition_to_dict` of ``t`` without its sub-skills (``[]``)."""
     return {
         "from": t.from_id,
         "to": t.to_id,
@@ -463,18 +635,7 @@ def _transition_to_dict(t: Transition, k: float) -> dict[str, Any]:
         "dof_transitions": {
             sp: [[a, b] for a, b in t.dof_transitions.get(sp, ())] for sp in SPACES
         },
-        "subskills": [
-            {
-                "kind": str(u.kind),
-                "space": u.space,
-                "type": u.type,
-                "direction": rounded_list(np.zeros(3) if u.direction is None else u.direction),
-                "point": None if u.point is None else rounded_list(u.point, k),
-                "source": u.source,
-                "subspace": rounded_rows(u.subspace),
-            }
-            for u in t.subskills
-        ],
+        "subskills": [],
         "critical": bool(t.critical),
         "direct": bool(t.direct),
         "decomposition": {

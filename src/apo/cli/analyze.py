@@ -326,7 +326,6 @@ def _read_poses_and_models(
 def _import_stages(args: argparse.Namespace) -> None:
     """Import the modules recognition and the outputs will use (while a child reads)."""
     import highspy  # noqa: F401 - the DOF analyses' LPs
-    import numpy.ma  # noqa: F401 - numpy's unique() imports it at its first call
 
     import apo.io.plausibility
     import apo.recognition.pipeline

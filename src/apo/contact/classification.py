@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from apo.arrays import unique
 from apo.contact._arrays import _dedupe, _dot, _rotate
 from apo.contact.elements import (
     _FEATURE_RANK,
@@ -149,7 +150,7 @@ def _points(
     edge, VV is the midpoint of the vertices.
     """
     out = np.empty((len(fr), 3))
-    for code in np.unique(kind).tolist():
+    for code in unique(kind).tolist():
         m = kind == code
         f, a, b = fr[m], ga[m], eb[m]
         k = _KIND_LIST[code]

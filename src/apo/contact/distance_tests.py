@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from apo.arrays import unique
 from apo.constants import tol
 from apo.contact._arrays import (
     _EMPTY_F,
@@ -330,7 +331,7 @@ def _touching(
     o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
     a = g.star_data[g.star_ptr[P[k]] + o // lq[k]]
     b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
-    code = np.unique((F[k] * g.n_all + a) * e.n_all + b)
+    code = unique((F[k] * g.n_all + a) * e.n_all + b)
     fr, code = np.divmod(code, g.n_all * e.n_all)
     bounds = np.searchsorted(fr, np.arange(n_frames + 1)).tolist()
     pairs = _pair_table(g, e, code)
@@ -354,7 +355,7 @@ def _pair_table(
     """
     pairs = g.pairs.setdefault(e, {})
     gf, ef = g.features, e.features
-    for c in np.unique(codes).tolist():
+    for c in unique(codes).tolist():
         if c not in pairs:
             a, b = divmod(c, e.n_all)
             pairs[c] = (gf[a], ef[b])

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from apo.arrays import unique
 from apo.constants import tol
 from apo.contact._arrays import _EMPTY_3, _EMPTY_I, _csr, _dedupe, _plane_basis
 from apo.contact.elements import _CODE, Feature
@@ -233,7 +234,7 @@ class _ModelData:
         start = self._piece_start[codes]
         if np.any(start < 0):
             new: list[_Cone] = []
-            for c in np.unique(codes[start < 0]).tolist():
+            for c in unique(codes[start < 0]).tolist():
                 cones = self.cones(self.features[c])
                 self._piece_start[c] = len(self.piece_list) + len(new)
                 self._piece_count[c] = len(cones)

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from apo.arrays import unique
 from apo.contact import ContactState
 from apo.recognition.bridges import Bridge, bridge_candidates
 from apo.recognition.candidates import (
@@ -142,7 +143,7 @@ def analyse_needed(
     ``own`` the cost of each frame's observed state (:func:`analyse`).
     """
     an = Analysis.start(observed.keys)
-    shortlist = sorted({int(k) for k in np.unique(path0)})
+    shortlist = sorted({int(k) for k in unique(path0)})
     analyse(scene, an, observed, own, path0, shortlist)
     extra = states_around_gaps(scene, an, observed.labels, path0) - set(shortlist)
     if extra:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from apo.arrays import unique
 from apo.recognition.types import BoolArray, FloatArray, IntArray
 
 __all__ = [
@@ -199,7 +200,7 @@ def near_pairs(obs: IntArray, k_count: int, window: int) -> BoolArray:
     near = np.zeros((k_count, k_count), dtype=bool)
     step = max(1, window // 2)
     for a in range(0, n, step):
-        present = np.unique(obs[a : min(n, a + window + step + 1)])
+        present = unique(obs[a : min(n, a + window + step + 1)])
         near[np.ix_(present, present)] = True
     return near
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from apo.arrays import median
 from apo.contact import ContactElement
 from apo.correction import ContactConstraints
 from apo.geometry import Polyhedron
@@ -121,7 +122,7 @@ def _robust_sigma(d: FloatArray) -> float:
     """Return the standard deviation per axis of white noise whose second differences are ``d``."""
     if len(d) == 0:
         return 0.0
-    return float(_MAD * np.median(np.abs(d - np.median(d, axis=0))) / math.sqrt(6.0))
+    return float(_MAD * median(np.abs(d - median(d, axis=0))) / math.sqrt(6.0))
 
 
 def estimate_noise(grasped: Polyhedron, X_EG: FloatArray) -> NoiseEstimate:
@@ -282,4 +283,4 @@ def contact_noise(
     f = np.concatenate(res) if res else np.zeros(0)
     if len(f) < 8:
         return 0.0
-    return float(_MAD * np.median(np.abs(f)))
+    return float(_MAD * median(np.abs(f)))
