@@ -431,3 +431,54 @@ def test_touching_sets_share_one_tuple_per_feature_pair(seed: int = 14) -> None:
             assert seen.setdefault(pair, pair) is pair
             n += 1
     assert n > len(seen) > 0  # pairs met in several states
+
+
+@pytest.mark.parametrize("seed", [2, 17])
+def test_distinct_poses_by_hash_are_those_by_bytes(monkeypatch, seed: int) -> None:
+    """Poses grouped by a hash of their bits (no bytes key per frame): the groups of one
+    bytes key per pose, in order of first appearance, also where every hash collides."""
+    import apo.recognition.contacts as contacts
+
+    demo = add_noise(random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, seed=seed)
+    rng = np.random.default_rng(seed)
+    X = demo.X_EG[rng.integers(0, len(demo.X_EG), 3 * len(demo.X_EG))]
+    X[rng.integers(0, len(X), 5), 0, 3] += 1e-15  # near repeats: other poses
+    X[rng.integers(0, len(X), 3), 3, :3] = -0.0  # -0.0 is not 0.0 bit for bit
+    rows = X.reshape(len(X), -1)
+    want = contacts._distinct_by_bytes(rows)
+    assert len(want[0]) < len(X)
+    for block in (1, 7, 4096):
+        monkeypatch.setattr(contacts, "DISTINCT_BLOCK", block)
+        got = contacts.distinct_poses(X)
+        assert all(np.array_equal(a, b) for a, b in zip(want, got, strict=True))
+        assert got[0].dtype == got[1].dtype == np.int64
+    monkeypatch.setattr(contacts, "_pose_hashes", lambda w: np.zeros(len(w), dtype=np.uint64))
+    got = contacts.distinct_poses(X)  # every pose the same hash: grouped by bytes
+    assert all(np.array_equal(a, b) for a, b in zip(want, got, strict=True))
+
+
+def test_pose_defect_in_blocks_is_that_of_all_poses(monkeypatch) -> None:
+    """Poses tested a block at a time: the first defect of the whole sequence, the same
+    message (a non-finite pose anywhere before a bad rotation, before a bad last row)."""
+    import apo.spatial as spatial
+
+    rng = np.random.default_rng(4)
+    demo = add_noise(random_variant(9), sigma_mm=1.0, sigma_deg=1.0, seed=9)
+    cases = []
+    for kinds in ([], ["rot"], ["row", "rot"], ["rot", "nan"], ["row"], ["nan", "nan"]):
+        X = demo.X_EG.copy()
+        for kind in kinds:
+            i = int(rng.integers(0, len(X)))
+            if kind == "nan":
+                X[i, 1, 2] = np.nan
+            elif kind == "rot":
+                X[i, :3, 0] *= 1.01
+            else:
+                X[i, 3, 0] = 1e-3
+        cases.append(X)
+    monkeypatch.setattr(spatial, "DEFECT_BLOCK", 1 << 30)
+    want = [spatial.pose_defect(X) for X in cases]
+    assert want[0] is None and {w[1] for w in want[1:] if w} == {"finite", "rotation", "last row"}
+    for block in (1, 3, 64):
+        monkeypatch.setattr(spatial, "DEFECT_BLOCK", block)
+        assert [spatial.pose_defect(X) for X in cases] == want

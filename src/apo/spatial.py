@@ -279,9 +279,28 @@ def pose_defect(X: npt.ArrayLike) -> tuple[int, str, str] | None:
     True
     """
     M = np.asarray(X, dtype=np.float64)
+    for test in (_defect_finite, _defect_rotation, _defect_last_row):
+        for a in range(0, len(M), DEFECT_BLOCK):  # working arrays of a block, not of all
+            found = test(M[a : a + DEFECT_BLOCK])
+            if found is not None:
+                return found[0] + a, found[1], found[2]
+    return None
+
+
+#: Poses tested at a time by :func:`pose_defect` (its working arrays: some 300 bytes a pose).
+DEFECT_BLOCK = 4096
+
+
+def _defect_finite(M: FloatArray) -> tuple[int, str, str] | None:
+    """Return the first pose of ``M`` with a non-finite entry, if any."""
     finite = np.isfinite(M).all(axis=(1, 2))
     if not finite.all():
         return int(np.argmin(finite)), "finite", "is not finite"
+    return None
+
+
+def _defect_rotation(M: FloatArray) -> tuple[int, str, str] | None:
+    """Return the first pose of ``M`` (finite) whose 3x3 block is not a rotation, if any."""
     R = M[:, :3, :3]
     err = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2), initial=0.0)
     det = np.linalg.det(R) if len(M) else np.zeros(0)
@@ -294,6 +313,11 @@ def pose_defect(X: npt.ArrayLike) -> tuple[int, str, str] | None:
             f"rotation part is not a rotation matrix (max |R R^T - I| = {err[k]:.1e}, "
             f"tolerance {tol.rotation:g}; det {det[k]:.3g})",
         )
+    return None
+
+
+def _defect_last_row(M: FloatArray) -> tuple[int, str, str] | None:
+    """Return the first pose of ``M`` whose last row is not ``0 0 0 1``, if any."""
     last = np.any(np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]) > tol.rotation, axis=1)
     if last.any():
         return int(np.argmax(last)), "last row", "last row is not 0 0 0 1"

@@ -135,14 +135,17 @@ def _collect(pid: int, fd: int) -> tuple[bool | None, Any]:
 
     The child is reaped if it has exited; else later (:func:`_reap`): once its result is
     read (the end of the pipe), the parent does not wait while the child's memory is freed.
+    The result is unpickled from the pipe as it comes (its arrays read into their own
+    buffers), not read whole first: no copy of the message beside the arrays it holds.
     """
     with os.fdopen(fd, "rb") as fh:
-        data = fh.read()
+        try:
+            ok, value = pickle.load(fh)
+        except Exception:  # no or a cut message: the parent computes it
+            ok = None
     _UNREAPED.append(pid)
     _reap(block=False)
-    try:
-        ok, value = pickle.loads(data)
-    except Exception:  # no or a cut message: the parent computes it
+    if ok is None:
         return None, None
     return bool(ok), value
 

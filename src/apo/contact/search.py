@@ -406,15 +406,20 @@ def _group_sets(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntA
     of each label.
     """
     cnt = np.bincount(frame, minlength=n)
-    width = int(cnt.max(initial=0))
-    M = np.full((n, width + 1), -1, dtype=np.int64)
-    M[:, 0] = cnt
-    slot = np.arange(len(frame)) - (np.cumsum(cnt) - cnt)[frame]
-    M[frame, slot + 1] = code
-    # rows as bytes into a dict: labels in order of first appearance, no sort of the rows
+    # each frame's codes (a run of the sorted rows) as one bytes key: the same labels as
+    # its row of codes padded to the widest frame, without an (n, width) matrix
+    i32 = np.iinfo(np.int32)
+    narrow = not len(code) or (int(code.min()) >= i32.min and int(code.max()) <= i32.max)
+    buf = code.astype(np.int32 if narrow else np.int64).tobytes()
+    ends = (np.cumsum(cnt) * (4 if narrow else 8)).tolist()
     index: dict[bytes, int] = {}
     labels = np.fromiter(
-        (index.setdefault(r, len(index)) for r in map(bytes, M)), np.int64, count=n
+        (
+            index.setdefault(buf[a:b], len(index))
+            for a, b in zip([0, *ends[:-1]], ends, strict=True)
+        ),
+        np.int64,
+        count=n,
     )
     first = np.full(len(index), n, dtype=np.int64)
     np.minimum.at(first, labels, np.arange(n, dtype=np.int64))

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from apo.typing import BoolArray, FloatArray
 
-__all__ = ["ClosedMesh", "is_closed"]
+__all__ = ["ClosedMesh", "is_closed", "is_solid"]
 
 
 def is_closed(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
@@ -32,6 +32,27 @@ def is_closed(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
     e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
     _, count = np.unique(e, axis=0, return_counts=True)
     return bool(len(T) > 0 and np.all(count == 2))
+
+
+def is_solid(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
+    """Return whether the mesh bounds a solid with its faces' normals pointing out.
+
+    Closed (every edge in exactly two triangles), consistently oriented (the two triangles
+    of an edge traverse it in opposite directions) and of positive signed volume (the
+    right-hand normals point outwards). Seen from outside, such a mesh's faces turned away
+    from the viewer are hidden behind the ones turned to it (back-face culling is exact).
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    T = np.asarray(triangles, dtype=np.int64)
+    if len(T) == 0 or not is_closed(V, T):
+        return False
+    _, same = np.unique(V, axis=0, return_inverse=True)
+    S = same.ravel()[T]
+    directed = np.concatenate([S[:, [0, 1]], S[:, [1, 2]], S[:, [2, 0]]])
+    if len(np.unique(directed, axis=0)) != len(directed):  # an edge twice the same way
+        return False
+    a, b, c = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+    return bool(np.einsum("ij,ij->", a, np.cross(b, c)) > 0.0)
 
 
 def _oblique() -> FloatArray:

@@ -76,6 +76,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.perception.camera import Camera
+from apo.perception.meshdistance import is_solid
 from apo.perception.render import rasterize
 from apo.spatial import orthonormalised, transform_points
 from apo.typing import FloatArray
@@ -117,6 +118,9 @@ class FacePlanes:
         Vertex indices of each edge (once).
     edge_faces : ndarray of int, shape (E, 2)
         The two triangles of each edge (the second -1 on an open boundary).
+    solid : bool
+        The mesh bounds a solid, normals out (:func:`apo.perception.meshdistance.is_solid`):
+        it is rendered without its back faces (``rasterize(..., cull=True)``).
     """
 
     vertices: FloatArray
@@ -125,6 +129,7 @@ class FacePlanes:
     offsets: FloatArray
     edges: npt.NDArray[np.int64]
     edge_faces: npt.NDArray[np.int64]
+    solid: bool = False
 
     def silhouette_edges(self, X_CM: FloatArray) -> npt.NDArray[np.int64]:
         """Return the edges between a face turned to the camera and one turned away (indices)."""
@@ -151,7 +156,8 @@ def face_planes(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> FacePlanes
     count = np.diff(np.r_[start, len(inv_s)])
     second = np.where(count > 1, face_s[np.minimum(start + 1, len(face_s) - 1)], -1)
     edge_faces = np.column_stack([face_s[start], second])
-    return FacePlanes(V, T, n, np.einsum("ij,ij->i", n, V[T[:, 0]]), edges, edge_faces)
+    offsets = np.einsum("ij,ij->i", n, V[T[:, 0]])
+    return FacePlanes(V, T, n, offsets, edges, edge_faces, is_solid(V, T))
 
 
 @dataclass(frozen=True)
@@ -217,7 +223,43 @@ class _Window:
     sigma: FloatArray  # (h, w) depth noise
     free: FloatArray  # (h, w) depth beyond which the sensor sees through the model
     occluder: npt.NDArray[np.float32] | None
-    shared: npt.NDArray[np.bool_]  # (h, w) object pixels within the noise of the occluder
+    box: tuple[int, int, int, int] = (0, 0, 0, 0)  # rows and columns holding the mask
+    depth_sigma: float | None = None  # the median depth noise of the mask (None: no mask)
+    v0: int = 0  # a crop's first row and column in the window (:func:`_cropped`)
+    u0: int = 0
+    shared: npt.NDArray[np.bool_] | None = None  # object pixels within the occluder's noise
+
+
+def _bounds(image: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
+    """Return ``(first row, last row + 1, first column, last column + 1)`` of the True pixels."""
+    r, c = np.flatnonzero(image.any(axis=1)), np.flatnonzero(image.any(axis=0))
+    if len(r) == 0:
+        return (0, 0, 0, 0)
+    return int(r[0]), int(r[-1]) + 1, int(c[0]), int(c[-1]) + 1
+
+
+def _cropped(
+    win: _Window, rendered: npt.NDArray[np.float32], tri: npt.NDArray[np.int64]
+) -> tuple[_Window, npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """Return the window, the rendering and its triangles on the box of the mask and the model.
+
+    No row of :func:`_rows` comes from a pixel that neither the mask nor the rendered model
+    holds, so the rows are those of the whole window, in the same order (row-major), at a
+    fraction of the work (the window is the model's box grown by the motion margin; the
+    object and the model fill a third of it or less). Views, not copies.
+    """
+    boxes = [b for b in (win.box, _bounds(tri >= 0)) if b[1] > b[0]] or [(0, 0, 0, 0)]
+    r0, c0 = min(b[0] for b in boxes), min(b[2] for b in boxes)
+    r1, c1 = max(b[1] for b in boxes), max(b[3] for b in boxes)
+    box = np.s_[r0:r1, c0:c1]
+    occ = None if win.occluder is None else win.occluder[box]
+    shared = None if win.shared is None else win.shared[box]
+    crop = _Window(
+        win.camera, win.depth[box], win.mask[box], win.points[box], win.rays[box],
+        win.scale[box], win.sigma[box], win.free[box], occ, win.box, win.depth_sigma, r0, c0,
+        shared,
+    )  # fmt: skip
+    return crop, rendered[box], tri[box]
 
 
 def _window(
@@ -225,27 +267,32 @@ def _window(
     occluder: npt.ArrayLike | None, sigma: npt.ArrayLike | None, floor: float, k: float,
     max_pixels: int, shared: npt.ArrayLike | None = None,
 ) -> _Window:  # fmt: skip
-    d = np.asarray(depth, dtype=np.float64)
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
-    ok = d > 0
-    near = np.zeros(d.shape, dtype=bool) if shared is None else ok & np.asarray(shared, bool)
+    full = np.asarray(depth)
+    ok = np.isfinite(full) & (full > 0)
+    near = None if shared is None else ok & np.asarray(shared, dtype=bool)
     if mask is not None:
         ok &= np.asarray(mask, dtype=bool)
-    near &= ~ok
     count = int(np.count_nonzero(ok))
     step = max(1, int(np.ceil(np.sqrt(count / max_pixels)))) if count else 1
     cam = camera.subsampled(step)
-    d, ok = d[::step, ::step], ok[::step, ::step]
-    v, u = np.indices(d.shape)
-    rays = np.stack(((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(d.shape)), axis=-1)
+    # Only the pixels kept are converted (the same values as converting the whole window).
+    d = np.asarray(full[::step, ::step], dtype=np.float64)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    ok = ok[::step, ::step]
+    # The rays per column and row, broadcast (the same numbers as per pixel).
+    x = ((np.arange(d.shape[1]) - cam.cx) / cam.fx)[None, :]
+    y = ((np.arange(d.shape[0]) - cam.cy) / cam.fy)[:, None]
+    rays = np.empty((*d.shape, 3))
+    rays[..., 0], rays[..., 1], rays[..., 2] = x, y, 1.0
     P = rays * d[..., None]
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays /= np.sqrt(x * x + y * y + 1.0)[..., None]
     sig = np.zeros(d.shape) if sigma is None else np.asarray(sigma, np.float64)[::step, ::step]
     occ = None if occluder is None else np.asarray(occluder, dtype=np.float32)[::step, ::step]
-    return _Window(
-        cam, d, ok, P, rays, np.maximum(floor, k * sig), sig, np.maximum(floor, 4.0 * sig), occ,
-        near[::step, ::step],
-    )  # fmt: skip
+    scale, free = np.maximum(floor, k * sig), np.maximum(floor, 4.0 * sig)
+    box = _bounds(ok)
+    depth_sigma = float(np.median(scale[ok])) / TUKEY_K if box[1] > box[0] else None
+    near = None if near is None else near[::step, ::step] & ~ok
+    return _Window(cam, d, ok, P, rays, scale, sig, free, occ, box, depth_sigma, shared=near)
 
 
 _Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
@@ -431,14 +478,18 @@ def _rows(
     scale ``scale_k``, or connected to such through pixels in front by more than the noise)
     give no row, nor do object pixels outside the rendered silhouette.
     """
-    rendered, tri = rasterize(transform_points(X, model.vertices), model.triangles, win.camera)
+    V_C = transform_points(X, model.vertices)
+    rendered, tri = rasterize(V_C, model.triangles, win.camera, cull=model.solid)
+    win, rendered, tri = _cropped(win, rendered, tri)
     R, t = X[:3, :3], X[:3, 3]
     on = tri >= 0
     vis = on.copy()
     if win.occluder is not None:
         vis &= ~((win.occluder > 0) & (win.occluder < rendered))
     diff = rendered - win.depth
-    surf = (win.mask | (win.shared & (-diff <= win.free))) & vis
+    surf = win.mask & vis
+    if win.shared is not None:  # the part's where the model renders it, within the noise
+        surf |= win.shared & vis & (-diff <= win.free)
     if clutter:
         surf &= ~occluders(diff, surf, np.maximum(win.scale, scale_k), np.maximum(1e-3, win.sigma))
     n_C = model.normals[tri[surf]] @ R.T
@@ -488,7 +539,7 @@ def _contour(
         - a2
     )
     v, u = np.nonzero(wrong)
-    k, sk = _nearest_edge(u, v, a2, ab)
+    k, sk = _nearest_edge(u + win.u0, v + win.v0, a2, ab)  # in the whole window
     t3 = sk * A[k, 2] / np.maximum((1 - sk) * B[k, 2] + sk * A[k, 2], 1e-12)  # perspective
     E = A[k] + t3[:, None] * (B[k] - A[k])
     Pe = win.rays[v, u] / win.rays[v, u, 2:3] * E[:, 2:3]  # the pixel's ray at the edge's depth
@@ -499,7 +550,7 @@ def _contour(
     x = (Pe - t) @ R
     r = np.einsum("ij,ij->i", n_M, x - (E - t) @ R)
     lateral = 0.5 * z / cam.fx
-    depth_sigma = float(np.median(win.scale[win.mask])) / TUKEY_K if win.mask.any() else lateral
+    depth_sigma = lateral if win.depth_sigma is None else win.depth_sigma
     w = min(CONTOUR_WEIGHT_MAX, (depth_sigma / lateral) ** 2)
     return x, n_M, r, win.scale[v, u], np.full(len(r), w), np.zeros((len(r), 3))
 

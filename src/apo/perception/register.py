@@ -473,7 +473,8 @@ def surface_check(
     step = max(1, int(np.ceil(np.sqrt(w * h / max_pixels))))
     cam = camera.crop(u0, v0, w, h).subsampled(step)
     d = np.asarray(depth)[v0 : v0 + h : step, u0 : u0 + w : step]
-    rendered, _ = rasterize(transform_points(X, model.vertices), model.triangles, cam)
+    V_C = transform_points(X, model.vertices)
+    rendered, _ = rasterize(V_C, model.triangles, cam, cull=model.faces.solid)
     every = (rendered > 0) & (d > 0)
     if occluder is not None:
         occ = np.asarray(occluder)[v0 : v0 + h : step, u0 : u0 + w : step]
