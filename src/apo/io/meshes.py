@@ -21,6 +21,7 @@ import re
 import tempfile
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -144,6 +145,18 @@ def load_triangles(
         Missing file, unknown suffix, unknown units, unreadable or empty file.
     """
     path = Path(path)
+    fmt, scale, cache = _triangle_source(path, units, stacklevel=4)
+    return _read_triangles(path, fmt, scale, cache)
+
+
+def _triangle_source(
+    path: Path, units: str | None, *, stacklevel: int
+) -> tuple[str, float, Path | None]:
+    """Check a model file and its units: ``(format, scale, triangle cache entry)``.
+
+    Warns where a STEP file declares another unit than ``units``; the cache entry is None
+    for a binary STL (read directly) or with the cache off.
+    """
     _check_units(units, path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
@@ -162,16 +175,23 @@ def load_triangles(
                 warnings.warn(
                     f"{path}: STEP file declares its lengths in {declared!r}; "
                     f"ignoring units={units!r}",
-                    stacklevel=3,
+                    stacklevel=stacklevel,
                 )
     else:
         scale = UNITS[units if units is not None else DEFAULT_MESH_UNITS]
+    if fmt == "stl" and _is_binary_stl(path):  # read directly: no trimesh, no cache needed
+        return fmt, scale, None
+    return fmt, scale, _cache_file(path, fmt, scale)
 
+
+def _read_triangles(
+    path: Path, fmt: str, scale: float, cache: Path | None
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """Return the triangles of :func:`load_triangles` from the file or its cache entry."""
     if fmt == "stl":
         binary = _binary_stl(path)
         if binary is not None:  # read here: no trimesh import (0.35 s), no cache needed
             return binary[0] * scale, binary[1]
-    cache = _cache_file(path, fmt, scale)
     if cache is not None:
         hit = _cache_read(cache)
         if hit is not None:
@@ -203,6 +223,20 @@ def load_triangles(
 
 
 _STL_RECORD = np.dtype([("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
+
+
+def _is_binary_stl(path: Path) -> bool:
+    """Whether :func:`_binary_stl` reads the file (its size fits the count it announces)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(84)
+            size = os.fstat(fh.fileno()).st_size
+    except OSError:
+        return False
+    if len(head) < 84:
+        return False
+    count = int.from_bytes(head[80:84], "little")
+    return count > 0 and size - 84 == count * _STL_RECORD.itemsize
 
 
 def _binary_stl(path: Path) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]] | None:
@@ -309,6 +343,92 @@ def _cache_write(
         return
 
 
+def _polyhedron_file(triangles: Path) -> Path:
+    """Cache entry of the polyhedron built from a triangle cache entry's triangles.
+
+    Keyed as well by the code that builds it (:mod:`apo.geometry` and its tolerances in
+    :mod:`apo.constants`: their files' size and mtime), so a changed builder builds anew.
+    """
+    from apo import constants, geometry
+
+    stamps = "|".join(_file_stamp(m.__file__) for m in (geometry, constants))
+    key = hashlib.sha256(f"{triangles.name}|{_POLY_FORMAT}|{stamps}".encode()).hexdigest()
+    return triangles.with_name(f"{key}.poly.npy")
+
+
+def _file_stamp(path: str | None) -> str:
+    """``path:size:mtime`` of a source file (``-`` if it cannot be read)."""
+    try:
+        st = os.stat(path or "")
+    except OSError:
+        return "-"
+    return f"{path}:{st.st_size}:{st.st_mtime_ns}"
+
+
+_POLY_FORMAT = 1
+
+
+def _polyhedron_to_array(p: Polyhedron) -> npt.NDArray[np.float64]:
+    """One float64 array holding a polyhedron (indices are exact in float64)."""
+    holes = [h for hs in p.face_holes for h in hs]
+    ragged = (p.faces, holes, p.face_triangles, p.vertex_edges, p.vertex_faces)
+    parts: list[Any] = [
+        [_POLY_FORMAT, len(p.vertices), len(p.faces), len(holes), len(p.edges), p.scale],
+        [len(hs) for hs in p.face_holes],
+        *([len(a) for a in group] for group in ragged),
+        p.vertices, p.face_normals, p.face_offsets, p.edges, p.edge_faces, p.edge_convex,
+        *(np.concatenate([np.ravel(a) for a in group]) if len(group) else [] for group in ragged),
+    ]  # fmt: skip
+    return np.concatenate([np.ravel(np.asarray(x, dtype=np.float64)) for x in parts])
+
+
+def _polyhedron_from_array(a: npt.NDArray[np.float64], name: str) -> Polyhedron | None:
+    """Return the polyhedron of :func:`_polyhedron_to_array`, or None if ``a`` is not one."""
+    fmt, nv, nf, nh, ne, scale = a[:6].tolist()
+    if fmt != _POLY_FORMAT:
+        return None
+    nv, nf, nh, ne = int(nv), int(nf), int(nh), int(ne)
+    ints = a.astype(np.int64)
+    pos = 6
+
+    def take(n: int, values: npt.NDArray[Any] = ints) -> npt.NDArray[Any]:
+        nonlocal pos
+        pos += n
+        return values[pos - n : pos]
+
+    holes_per_face = take(nf).tolist()
+    lengths = [take(k).tolist() for k in (nf, nh, nf, nv, nv)]
+    vertices = take(3 * nv, a).reshape(nv, 3).copy()
+    normals, offsets = take(3 * nf, a).reshape(nf, 3).copy(), take(nf, a).copy()
+    edges, edge_faces = take(2 * ne).reshape(ne, 2), take(2 * ne).reshape(ne, 2)
+    convex = take(ne).astype(bool)
+    groups = []
+    for n, width in zip(lengths, (1, 1, 3, 1, 1), strict=True):
+        flat = take(width * sum(n)).reshape(-1, width)
+        ends = np.cumsum(n).tolist()
+        rows = (flat[e - k : e] for k, e in zip(n, ends, strict=True))
+        groups.append(tuple(r if width > 1 else r[:, 0] for r in rows))
+    if pos != len(a):
+        return None
+    faces, holes, tris, vedges, vfaces = groups
+    it = iter(holes)
+    return Polyhedron(
+        name=name,
+        vertices=vertices,
+        faces=faces,
+        face_holes=tuple(tuple(next(it) for _ in range(k)) for k in holes_per_face),
+        face_normals=normals,
+        face_offsets=offsets,
+        face_triangles=tris,
+        edges=edges,
+        edge_faces=edge_faces,
+        edge_convex=convex,
+        vertex_edges=vedges,
+        vertex_faces=vfaces,
+        scale=float(scale),
+    )
+
+
 PLAUSIBLE_SIZE = (1e-3, 10.0)
 """Largest extent (metres) of a model outside which :func:`load_polyhedron` warns that the
 units may be wrong (a part read in metres from a millimetre file is 1000 times too big)."""
@@ -358,8 +478,59 @@ def load_polyhedron(
     (10, 24, 16)
     """
     path = Path(path)
-    vertices, triangles = load_triangles(path, units=units)
+    fmt, scale, cache = _triangle_source(path, units, stacklevel=3)
     label = name or path.name
+    stored = None if cache is None else _polyhedron_file(cache)
+    poly = None if stored is None else _cached_polyhedron(stored, label)
+    if poly is None:
+        mesh = _read_triangles(path, fmt, scale, cache)
+        poly, warned = _build_polyhedron(path, units, label, mesh)
+        if stored is not None and not warned:  # a cached one would not warn again
+            _store(stored, _polyhedron_to_array(poly))
+    size = float(np.ptp(poly.vertices, axis=0).max())
+    if not PLAUSIBLE_SIZE[0] <= size <= PLAUSIBLE_SIZE[1]:
+        read_as = (
+            "its own STEP unit"
+            if MESH_SUFFIXES[path.suffix.lower()] == "step"
+            else (f"units={units or DEFAULT_MESH_UNITS!r}")
+        )
+        warnings.warn(
+            f"{path}: the model is {size:.4g} m across (read with {read_as}): are the units right?",
+            UserWarning,
+            stacklevel=2,
+        )
+    return poly
+
+
+def _cached_polyhedron(stored: Path, name: str) -> Polyhedron | None:
+    """Return the polyhedron of a cache entry, or None (absent or unreadable: built again)."""
+    try:
+        a = np.load(stored, allow_pickle=False)
+        return _polyhedron_from_array(a, name) if a.ndim == 1 and a.dtype == np.float64 else None
+    except (OSError, ValueError, IndexError, TypeError):
+        return None
+
+
+def _store(entry: Path, a: npt.NDArray[np.float64]) -> None:
+    """Write ``a`` as a cache entry (atomically); a cache that cannot be written is skipped."""
+    try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=entry.stem, suffix=".npy", dir=entry.parent)
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, a, allow_pickle=False)
+        os.replace(tmp, entry)
+    except OSError:
+        return
+
+
+def _build_polyhedron(
+    path: Path, units: str | None, label: str, mesh: tuple[npt.NDArray[Any], npt.NDArray[Any]]
+) -> tuple[Polyhedron, bool]:
+    """:func:`apo.geometry.polyhedron_from_triangles` and whether it warned.
+
+    Raises (or warns, with the file's path) as it does, with the lengths in the file's unit.
+    """
+    vertices, triangles = mesh
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         unit = _model_unit(path, units)
@@ -374,20 +545,8 @@ def load_polyhedron(
                 for w in caught
             ]
     for category, message in messages:
-        warnings.warn(f"{path}: {message}", category, stacklevel=2)
-    size = float(np.ptp(poly.vertices, axis=0).max())
-    if not PLAUSIBLE_SIZE[0] <= size <= PLAUSIBLE_SIZE[1]:
-        read_as = (
-            "its own STEP unit"
-            if MESH_SUFFIXES[path.suffix.lower()] == "step"
-            else (f"units={units or DEFAULT_MESH_UNITS!r}")
-        )
-        warnings.warn(
-            f"{path}: the model is {size:.4g} m across (read with {read_as}): are the units right?",
-            UserWarning,
-            stacklevel=2,
-        )
-    return poly
+        warnings.warn(f"{path}: {message}", category, stacklevel=3)
+    return poly, bool(messages)
 
 
 _LENGTHS: dict[str, float] = {**UNITS, "um": 1e-6, "km": 1e3, "ft": 0.3048}

@@ -51,6 +51,7 @@ from apo.perception.register import (
     plausibility,
     register,
     register_projective,
+    whole_plausibility,
 )
 from apo.perception.render import mesh_triangles, rasterize
 from apo.perception.segment import (
@@ -566,7 +567,8 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
         else:
             r = initialise(
                 env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
-                symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E], **kw,
+                symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E],
+                rank=whole_plausibility, **kw,
             )  # fmt: skip
         if env is None or r.confidence > env.confidence:
             env, env_points = r, env_pts

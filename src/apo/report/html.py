@@ -446,16 +446,23 @@ def report_parts(
 
 
 def _page_pieces(
-    data: Mapping[str, Any], *, title: str | None = None, task_json: Any = None
+    data: Mapping[str, Any],
+    *,
+    title: str | None = None,
+    task_json: Any = None,
+    plotly: bytes | None = None,
 ) -> Iterator[bytes]:
-    """Yield the pieces of :func:`report_parts`, the task's text read while they are written."""
+    """Yield the pieces of :func:`report_parts`, the task's text read while they are written.
+
+    ``plotly``: :func:`plotly_js` read already.
+    """
     src = str(data["task"].get("source") or "demonstration")
     text = title or f"apo report: {src}"  # escaped by hand: importing html costs 15 ms
     text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
     parts: dict[bytes, Callable[[], Iterator[bytes]]] = {
         b"__APO_TITLE__": lambda: iter([text.encode("utf-8")]),
         b"__APO_CSS__": lambda: iter([_asset("report.css")]),
-        b"__APO_PLOTLY__": lambda: iter([plotly_js()]),
+        b"__APO_PLOTLY__": lambda: iter([plotly_js() if plotly is None else plotly]),
         b"__APO_DATA__": lambda: _script_pieces(data, task_json),
         b"__APO_JS__": lambda: iter([_asset("report.js")]),
     }
@@ -480,17 +487,18 @@ def write_report(
     *,
     title: str | None = None,
     task_json: Any = None,
+    plotly: bytes | None = None,
 ) -> int:
     """Write the page of a :func:`report_data` document to ``path``; return its size in bytes.
 
     ``task_json``: the text of ``task.json`` or the written file
-    (:class:`apo.report.writer.TaskJson`), spliced in as the document's task. Not atomic by
-    itself: callers write into an :class:`apo.outputs.OutputSet` or through
-    :func:`apo.outputs.atomic_file`.
+    (:class:`apo.report.writer.TaskJson`), spliced in as the document's task. ``plotly``:
+    :func:`plotly_js`, if read already. Not atomic by itself: callers write into an
+    :class:`apo.outputs.OutputSet` or through :func:`apo.outputs.atomic_file`.
     """
     size = 0
     with open(path, "wb") as fh:
-        for piece in _page_pieces(data, title=title, task_json=task_json):
+        for piece in _page_pieces(data, title=title, task_json=task_json, plotly=plotly):
             fh.write(piece)
             size += len(piece)
     return size

@@ -368,18 +368,22 @@ def write_recognition(
     frames_done: Path | None = None
     with gc_paused():
         if task is not None:
-            head: Mapping[str, Any] = task[0]
+            written_task = TaskJson(outs.path("task.json"), task[0])
             written["task"] = outs.write_text("task.json", task[1])
         else:
-            head = task_head(rec.task)
+            written_task = TaskJson(outs.path("task.json"), task_head(rec.task))
             chunks = task_json_chunks(rec.task, depth=TASK_JSON_DEPTH)
             write_task = partial(outs.write_chunks, "task.json", chunks)
             if jobs != 1 and len(rec.task.states) >= TASK_IN_CHILD_STATES and can_fork():
-                # task.json in a forked child while this process writes frames.csv
-                frames_done, written["task"] = run_parts([frames, write_task])
+                # task.json in a forked child while this process writes frames.csv (and
+                # makes the report's data)
+                prepare = getattr(report, "prepare", None)
+                mine = partial(
+                    _then, frames, partial(prepare, written_task.head) if prepare else None
+                )
+                frames_done, written["task"] = run_parts([mine, write_task])
             else:
                 written["task"] = write_task()
-    written_task = TaskJson(outs.path("task.json"), head)
     if on_task is not None:
         on_task(written_task)
     with gc_paused():
@@ -397,19 +401,60 @@ def write_recognition(
     return written
 
 
+def _then(first: Callable[[], Path], then: Callable[[], object] | None) -> Path:
+    """``first()``, then ``then()`` if given; ``first``'s result."""
+    out = first()
+    if then is not None:
+        then()
+    return out
+
+
 def report_maker(
     rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
 ) -> ReportWriter:
-    """Return a :data:`ReportWriter` for ``report.html`` of ``rec`` (inputs: files to hash)."""
+    """Return a :data:`ReportWriter` for ``report.html`` of ``rec`` (inputs: files to hash).
 
-    def write(path: Path, doc: Mapping[str, Any], task_json: str | TaskJson) -> int:
-        from apo.report.html import write_report
+    It has a ``prepare(doc)`` method: the page's data and the plotly.js bundle made ahead,
+    for the ``doc`` it will be called with (:func:`write_recognition` calls it while a
+    forked child writes ``task.json``).
+    """
+    return _ReportMaker(rec, G, E, X_observed, inputs)
+
+
+class _ReportMaker:
+    """The :data:`ReportWriter` of :func:`report_maker`."""
+
+    def __init__(
+        self, rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
+    ) -> None:
+        self.args = (rec, G, E, X_observed, inputs)
+        self.ready: tuple[Mapping[str, Any], dict[str, Any], bytes] | None = None
+
+    def _data(self, doc: Mapping[str, Any]) -> dict[str, Any]:
         from apo.report.sources import file_entry, recognition_report
 
+        rec, G, E, X_observed, inputs = self.args
         files = [file_entry("demonstration", p) for p in inputs if p.is_file()]
-        data = recognition_report(
+        return recognition_report(
             rec, grasped=G, environment=E, X_observed=X_observed, files=files, doc=doc
         )
-        return write_report(path, data, task_json=task_json)
 
-    return write
+    def prepare(self, doc: Mapping[str, Any]) -> None:
+        """Make the page's data for ``doc`` and read the plotly.js bundle, ahead of the call.
+
+        A failure here is left to the call, which makes them again (and raises there).
+        """
+        from apo.report.html import plotly_js
+
+        try:
+            self.ready = (doc, self._data(doc), plotly_js())
+        except Exception:
+            self.ready = None
+
+    def __call__(self, path: Path, doc: Mapping[str, Any], task_json: str | TaskJson) -> int:
+        from apo.report.html import write_report
+
+        ready, self.ready = self.ready, None
+        if ready is not None and ready[0] is doc:
+            return write_report(path, ready[1], task_json=task_json, plotly=ready[2])
+        return write_report(path, self._data(doc), task_json=task_json)
