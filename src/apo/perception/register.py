@@ -830,6 +830,7 @@ def register_projective(
     free_space_tolerance: float = 0.005,
     occluder: npt.ArrayLike | None = None,
     clutter: bool = False,
+    shared: npt.ArrayLike | None = None,
 ) -> Registration:
     """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
 
@@ -862,12 +863,15 @@ def register_projective(
     clutter : bool, optional
         The mask may hold other things beside the object (depth alone): see
         :func:`apo.perception.projective.projective_icp`.
+    shared : ndarray of bool, shape (H, W), optional
+        Object pixels within the noise of the occluder's surface (not in ``mask``): see
+        :func:`apo.perception.projective.projective_icp`.
     """
     constraint = None if obstacle is None else _non_penetration(model, obstacle)
     res = projective_icp(
         depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
         start_scale=start_scale, iterations=iterations, occluder=occluder,
-        constraint=constraint, clutter=clutter,
+        constraint=constraint, clutter=clutter, shared=shared,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,

@@ -31,10 +31,13 @@ if TYPE_CHECKING:
 __all__ = ["batch_icp", "centres", "distinct_poses", "inlier_fraction", "voxel_subsample"]
 
 
-PARALLEL_QUERY = 10000
+PARALLEL_QUERY = 4000
 """k-d tree queries of at least this many points run on every core (``workers=-1``: the
 same results; measured on 40,000 samples: 20,000 points 83 -> 42 ms wall, CPU unchanged;
-1,500 points: no faster, 50 % more CPU)."""
+1,500 points: no faster, 50 % more CPU). 4,000 since session 6 (10,000 before): the last
+stages of a search query 3 candidates x 3,000 points against the environment's 200,000
+dense samples (8.5 ms of CPU a query); the two searches of dev variant seed 203 replayed,
+load 6.4: 4.15 -> 3.2-3.5 s wall, 1.34-1.56 -> 1.41-1.47 s CPU, the same poses."""
 
 
 def _workers(Q: FloatArray) -> int:

@@ -659,6 +659,7 @@ class _Observed(NamedTuple):
     camera: Camera  # the window's camera
     environment: npt.NDArray[np.float32]  # the environment model's depth in the window
     mask: BoolArray  # the object's pixels in the window (gated)
+    shared: BoolArray  # object pixels within the noise of the environment's surface
 
 
 class _Tracker:
@@ -702,8 +703,13 @@ class _Tracker:
 
     def _masked(
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], window: Window | None
-    ) -> tuple[npt.NDArray[np.float32], Camera, npt.NDArray[np.float32], BoolArray]:
-        """Return the window's depth, camera, environment depth and the grasped object's pixels."""
+    ) -> tuple[npt.NDArray[np.float32], Camera, npt.NDArray[np.float32], BoolArray, BoolArray]:
+        """Return the window's depth, camera, environment depth and the grasped object's pixels.
+
+        And the object pixels the environment's cut removed (within its noise of the
+        environment's rendered surface: the part's too where it is near the environment,
+        those whose noise took them nearer; see :func:`projective_icp`'s ``shared``).
+        """
         s = self.scene
         env_d, d, c = s.env_depth, depth, s.camera
         if window is not None:
@@ -712,8 +718,9 @@ class _Tracker:
             d = depth[v0 : v0 + h, u0 : u0 + w]
             c = c.crop(u0, v0, w, h)
         env_thr = s.seg.threshold(d, self.opt.environment_threshold, 1)
-        mask = grasped_mask(s.seg.objects(rgb, depth, window), d, env_d, threshold=env_thr)
-        return d, c, env_d, mask
+        objects = s.seg.objects(rgb, depth, window)
+        mask = grasped_mask(objects, d, env_d, threshold=env_thr)
+        return d, c, env_d, mask, objects & ~mask
 
     def _subset(self, pts: FloatArray) -> FloatArray:
         """At most ``max_points`` of the points (random subset)."""
@@ -730,7 +737,7 @@ class _Tracker:
         Without a window: the first group of :func:`_object_groups` (the largest component
         and those near it).
         """
-        d, c, env_d, mask = self._masked(rgb, depth, window)
+        d, c, env_d, mask, shared = self._masked(rgb, depth, window)
         if window is None:
             pts = _object_groups(mask, d, c, self.G.diameter, limit=1)[0]
         else:
@@ -740,7 +747,7 @@ class _Tracker:
             pts = pts[inside]
             mask = mask & (d > 0)
             mask[mask] = inside  # backproject's row-major order
-        return _Observed(self._subset(pts), d, c, env_d, mask)
+        return _Observed(self._subset(pts), d, c, env_d, mask, shared)
 
     def good(self, r: Registration) -> bool:
         """Confident, explaining its points and fitting them as closely as the last frames did.
@@ -771,12 +778,12 @@ class _Tracker:
         seen = self._around(rgb, depth, pred)
         if seen is None:
             return None
-        (pts, d, c, env_d, mask), kw, reach = seen
+        (pts, d, c, env_d, mask, shared), kw, reach = seen
         result: Registration | None = None
         starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
         if self.opt.projective:  # from the prediction, then from the last pose
             for start in starts:
-                r = self.projective(start, d, c, pts, mask, env_d, reach, kw)
+                r = self.projective(start, d, c, pts, mask, env_d, reach, kw, shared)
                 if _better(r, result):
                     result = r
                 if result is not None and self.good(result):
@@ -826,12 +833,13 @@ class _Tracker:
         seen = self._around(rgb, depth, X)
         if seen is None:
             return None
-        (pts, d, c, env_d, mask), kw, reach = seen
-        return self.projective(X, d, c, pts, mask, env_d, reach, kw)
+        (pts, d, c, env_d, mask, shared), kw, reach = seen
+        return self.projective(X, d, c, pts, mask, env_d, reach, kw, shared)
 
     def projective(
         self, pred: FloatArray, d: npt.NDArray[np.float32], c: Camera, pts: FloatArray,
         mask: BoolArray, env_d: npt.NDArray[np.float32], reach: float, kw: dict[str, Any],
+        shared: BoolArray | None = None,
     ) -> Registration:  # fmt: skip
         """Projective ICP from the prediction; once more from its result when it moved far.
 
@@ -845,6 +853,7 @@ class _Tracker:
         sigma = self.scene.noise.sigma(d)
         # Without the colour a hand beside the part is in the mask (see projective_icp).
         args["clutter"] = not self.scene.seg.colour.used
+        args["shared"] = shared
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
                                 start_scale=reach, **args)  # fmt: skip
         if _displacement(self.G, pred, r.X_CM) > self.opt.settle_distance:
@@ -863,7 +872,7 @@ class _Tracker:
         hand and the part it holds is the largest) is searched; the most plausible result
         (:func:`apo.perception.register.plausibility`) wins.
         """
-        d, c, env_d, mask = self._masked(rgb, depth, None)
+        d, c, env_d, mask, _ = self._masked(rgb, depth, None)
         best: Registration | None = None
 
         def polish(X: FloatArray) -> Registration | None:
