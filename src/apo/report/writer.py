@@ -414,7 +414,7 @@ def report_maker(
 ) -> ReportWriter:
     """Return a :data:`ReportWriter` for ``report.html`` of ``rec`` (inputs: files to hash).
 
-    It has a ``prepare(doc)`` method: the page's data and the plotly.js bundle made ahead,
+    It has a ``prepare(doc)`` method: the page's data made ahead,
     for the ``doc`` it will be called with (:func:`write_recognition` calls it while a
     forked child writes ``task.json``).
     """
@@ -428,7 +428,7 @@ class _ReportMaker:
         self, rec: Recognition, G: Polyhedron, E: Polyhedron, X_observed: Any, inputs: list[Path]
     ) -> None:
         self.args = (rec, G, E, X_observed, inputs)
-        self.ready: tuple[Mapping[str, Any], dict[str, Any], bytes] | None = None
+        self.ready: tuple[Mapping[str, Any], dict[str, Any]] | None = None
 
     def _data(self, doc: Mapping[str, Any]) -> dict[str, Any]:
         from apo.report.sources import file_entry, recognition_report
@@ -440,14 +440,12 @@ class _ReportMaker:
         )
 
     def prepare(self, doc: Mapping[str, Any]) -> None:
-        """Make the page's data for ``doc`` and read the plotly.js bundle, ahead of the call.
+        """Make the page's data for ``doc`` ahead of the call (plotly.js is copied then).
 
         A failure here is left to the call, which makes them again (and raises there).
         """
-        from apo.report.html import plotly_js
-
         try:
-            self.ready = (doc, self._data(doc), plotly_js())
+            self.ready = (doc, self._data(doc))
         except Exception:
             self.ready = None
 
@@ -456,5 +454,5 @@ class _ReportMaker:
 
         ready, self.ready = self.ready, None
         if ready is not None and ready[0] is doc:
-            return write_report(path, ready[1], task_json=task_json, plotly=ready[2])
+            return write_report(path, ready[1], task_json=task_json)
         return write_report(path, self._data(doc), task_json=task_json)
