@@ -27,11 +27,20 @@ def is_closed(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
 
     Vertices at the same coordinates are one (an STL file repeats them per triangle).
     """
+    return _closed(_welded(vertices, triangles))
+
+
+def _welded(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """Return the triangles' corners as indices of the distinct vertex coordinates."""
     _, same = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
-    T = same.ravel()[np.asarray(triangles, dtype=np.int64)]
-    e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
+    return np.asarray(same.ravel()[np.asarray(triangles, dtype=np.int64)], dtype=np.int64)
+
+
+def _closed(S: npt.NDArray[np.int64]) -> bool:
+    """Whether every edge of the welded triangles ``S`` belongs to exactly two of them."""
+    e = np.sort(np.concatenate([S[:, [0, 1]], S[:, [1, 2]], S[:, [2, 0]]]), axis=1)
     _, count = np.unique(e, axis=0, return_counts=True)
-    return bool(len(T) > 0 and np.all(count == 2))
+    return bool(len(S) > 0 and np.all(count == 2))
 
 
 def is_solid(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
@@ -44,10 +53,11 @@ def is_solid(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> bool:
     """
     V = np.asarray(vertices, dtype=np.float64)
     T = np.asarray(triangles, dtype=np.int64)
-    if len(T) == 0 or not is_closed(V, T):
+    if len(T) == 0:
         return False
-    _, same = np.unique(V, axis=0, return_inverse=True)
-    S = same.ravel()[T]
+    S = _welded(V, T)
+    if not _closed(S):
+        return False
     directed = np.concatenate([S[:, [0, 1]], S[:, [1, 2]], S[:, [2, 0]]])
     if len(np.unique(directed, axis=0)) != len(directed):  # an edge twice the same way
         return False

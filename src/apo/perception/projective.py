@@ -70,7 +70,7 @@ steps appeared at 1 m with the ray distance's Jacobian, session 6).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -252,12 +252,11 @@ def _cropped(
     r0, c0 = min(b[0] for b in boxes), min(b[2] for b in boxes)
     r1, c1 = max(b[1] for b in boxes), max(b[3] for b in boxes)
     box = np.s_[r0:r1, c0:c1]
-    occ = None if win.occluder is None else win.occluder[box]
-    shared = None if win.shared is None else win.shared[box]
-    crop = _Window(
-        win.camera, win.depth[box], win.mask[box], win.points[box], win.rays[box],
-        win.scale[box], win.sigma[box], win.free[box], occ, win.box, win.depth_sigma, r0, c0,
-        shared,
+    crop = replace(
+        win, depth=win.depth[box], mask=win.mask[box], points=win.points[box],
+        rays=win.rays[box], scale=win.scale[box], sigma=win.sigma[box], free=win.free[box],
+        occluder=None if win.occluder is None else win.occluder[box],
+        shared=None if win.shared is None else win.shared[box], v0=r0, u0=c0,
     )  # fmt: skip
     return crop, rendered[box], tri[box]
 

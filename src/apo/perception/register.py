@@ -1047,13 +1047,13 @@ def initialise(
     P = np.asarray(points_C, dtype=np.float64)
     if len(P) < 10:
         return Registration(np.eye(4), 0.0, np.inf, 1.0, len(P))
+    rank = rank or plausibility
     rng = np.random.default_rng(seed)
     score: dict[str, Any] = {"inlier_distance": inlier_distance, "depth": depth, "camera": camera,
              "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
              "occluder": occluder}  # fmt: skip
     search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
-              "symmetry_rotations": symmetry_rotations, "polish": polish,
-              "rank": rank or plausibility}  # fmt: skip
+              "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank}  # fmt: skip
     found = centres(P, model.diameter)
     if len(found) == 1:
         return _search(P, model, score, **search)
@@ -1065,7 +1065,7 @@ def initialise(
         if len(near) < 10:
             continue
         r = _search(near, model, score, **search)
-        if best is None or search["rank"](r) > search["rank"](best):
+        if best is None or rank(r) > rank(best):
             best = r
     assert best is not None
     return best

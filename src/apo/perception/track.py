@@ -749,6 +749,14 @@ class _Tracker:
             mask[mask] = inside  # backproject's row-major order
         return _Observed(self._subset(pts), d, c, env_d, mask, shared)
 
+    @property
+    def clutter(self) -> bool:
+        """Whether the object pixels hold other things' (a hand holding the part, an arm).
+
+        Without the colour cue, the segmentation cannot tell them from the part's.
+        """
+        return not self.scene.seg.colour.used
+
     def good(self, r: Registration) -> bool:
         """Confident, explaining its points and fitting them as closely as the last frames did.
 
@@ -763,10 +771,9 @@ class _Tracker:
             top = self.opt.good_confidence
             return min(top, float(np.median(history)) - 0.01) if len(history) >= 3 else top
 
-        # Without the colour the observed points hold a hand's: the share they explain
-        # (the quality's fitness) is no bar then.
-        clutter = not self.scene.seg.colour.used
-        if r.confidence < bar(self.confs) or (not clutter and r.quality < bar(self.fits)):
+        # With clutter the share of the observed points a pose explains (the quality's
+        # fitness) is no bar.
+        if r.confidence < bar(self.confs) or (not self.clutter and r.quality < bar(self.fits)):
             return False
         rm = self.rmses
         return len(rm) < 3 or r.rmse <= self.opt.rmse_factor * float(np.median(rm))
@@ -851,8 +858,7 @@ class _Tracker:
         """
         args = {k: v for k, v in kw.items() if k not in ("loss", "depth", "camera", "engine")}
         sigma = self.scene.noise.sigma(d)
-        # Without the colour a hand beside the part is in the mask (see projective_icp).
-        args["clutter"] = not self.scene.seg.colour.used
+        args["clutter"] = self.clutter
         args["shared"] = shared
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
                                 start_scale=reach, **args)  # fmt: skip
@@ -885,7 +891,7 @@ class _Tracker:
             r = initialise(
                 pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
                 symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
-                polish=None if self.scene.seg.colour.used else polish,
+                polish=polish if self.clutter else None,
                 **self.scene.settings(pts),
             )  # fmt: skip
             if best is None or plausibility(r) > plausibility(best):
