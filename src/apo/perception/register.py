@@ -871,7 +871,7 @@ def register_projective(
     res = projective_icp(
         depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
         start_scale=start_scale, iterations=iterations, occluder=occluder,
-        constraint=constraint, clutter=clutter, shared=shared,
+        constraint=constraint, clutter=clutter, shared=shared, extrapolate=True,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
