@@ -20,7 +20,7 @@ from apo.spatial import invert_pose, pose_from_twist, rotation_angle, transform_
 pytest.importorskip("open3d")
 
 from apo.perception.register import ModelCloud, free_space_violation, initialise, register
-from apo.perception.track import TrackOptions, track_frames
+from apo.perception.track import TrackOptions, TrackResult, track_frames
 
 NOISE = DepthNoise(sigma_1m=1.5e-3)
 
@@ -54,12 +54,18 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"root": root, "cam": cam, "X_CE": X_CE, "X_EG": X_EG, "peg": peg, "slot": slot}
 
 
-def test_tracking_with_initial_poses_within_bounds(scene: dict) -> None:
+def track_from_the_true_start(scene: dict) -> TrackResult:
+    """Track the scene from the true initial poses."""
     X_CE = scene["X_CE"]
-    res = track_frames(
+    return track_frames(
         scene["root"], scene["peg"], scene["slot"], units="m",
         init_grasped=X_CE @ scene["X_EG"][0], init_environment=X_CE,
     )  # fmt: skip
+
+
+def test_tracking_with_initial_poses_within_bounds(scene: dict) -> None:
+    X_CE = scene["X_CE"]
+    res = track_from_the_true_start(scene)
     assert not res.lost.any()
     assert np.all(res.confidence > 0.9)
     pos, rot = errors(res.X_EG, scene["X_EG"])
@@ -315,3 +321,34 @@ def test_first_tukey_scale_follows_the_prediction_error(
     assert sum(i for _, i in fast) < sum(i for _, i in full)
     pos, rot = errors(X_fast, X_full)
     assert pos.max() < 0.05 and rot.max() < 0.02, (pos.max(), rot.max())  # 0.037 / 0.006
+
+
+def test_fitness_scored_on_a_second_thread_gives_the_same_numbers(
+    scene: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The frame loop scores each projective result's fitness on a thread of its pool while
+    # the surface check renders: the same Registration as scored on one thread.
+    import apo.perception.register as register
+
+    real = register.evaluate
+    pooled = 0
+
+    def both(*args: object, **kw: object) -> object:
+        nonlocal pooled
+        got = real(*args, **kw)  # type: ignore[arg-type]
+        if kw.get("pool") is not None:
+            pooled += 1
+            alone = real(*args, **{**kw, "pool": None})  # type: ignore[arg-type]
+            np.testing.assert_array_equal(got.X_CM, alone.X_CM)
+            assert (got.fitness, got.rmse, got.n_points) == (
+                alone.fitness, alone.rmse, alone.n_points,
+            )  # fmt: skip
+            assert (got.violation, got.penetration, got.surface) == (
+                alone.violation, alone.penetration, alone.surface,
+            )  # fmt: skip
+        return got
+
+    monkeypatch.setattr(register, "evaluate", both)
+    res = track_from_the_true_start(scene)
+    assert not res.lost.any()
+    assert pooled >= len(res.times)  # every frame's projective result

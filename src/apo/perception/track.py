@@ -691,6 +691,7 @@ class _Tracker:
         self.margin = self.opt.track_distance + 0.1 * self.G.diameter
         self.obstacle = (scene.E, scene.X_CE)
         self.centre = (self.G.vertices.min(0) + self.G.vertices.max(0)) / 2
+        self.pool: Executor | None = None  # scores the fitness meanwhile (register.evaluate)
 
     def predict(self, i: int) -> FloatArray | None:
         """Constant velocity from the last two frames (never across a gap or a re-start)."""
@@ -885,6 +886,7 @@ class _Tracker:
         sigma = self.scene.noise.sigma(d)
         args["clutter"] = self.clutter
         args["shared"] = shared
+        args["pool"] = self.pool
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
                                 start_scale=reach if first is None else first,
                                 **args)  # fmt: skip
@@ -1032,7 +1034,10 @@ def track_frames(
                 f.cancel()
     n = len(src)
     tracker = _Tracker(scene, XG0)
-    with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
+    # Decode the next frame meanwhile, and score each result's fitness while its surface
+    # check renders (register.evaluate).
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tracker.pool = pool
         colour = scene.seg.colour.used  # else the colour PNGs are not decoded at all
         pending = pool.submit(_read, src, 0, scene.cache, colour=colour)
         for i in range(n):
