@@ -831,6 +831,7 @@ def register_projective(
     occluder: npt.ArrayLike | None = None,
     clutter: bool = False,
     shared: npt.ArrayLike | None = None,
+    outline: bool = False,
 ) -> Registration:
     """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
 
@@ -866,12 +867,15 @@ def register_projective(
     shared : ndarray of bool, shape (H, W), optional
         Object pixels within the noise of the occluder's surface (not in ``mask``): see
         :func:`apo.perception.projective.projective_icp`.
+    outline : bool, optional
+        Add the two-sided outline rows (see :func:`apo.perception.projective.projective_icp`).
     """
     constraint = None if obstacle is None else _non_penetration(model, obstacle)
     res = projective_icp(
         depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
         start_scale=start_scale, iterations=iterations, occluder=occluder,
         constraint=constraint, clutter=clutter, shared=shared,
+        outline=outline,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
