@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from apo.arrays import unique
 from apo.errors import ApoError
 from apo.typing import BoolArray, FloatArray
 
@@ -192,7 +193,7 @@ def replay_indices(state_index: npt.ArrayLike, max_frames: int = MAX_REPLAY_FRAM
     ends = np.concatenate([[0, n - 1], change, change + 1])
     budget = max(max_frames - ends.size, 2)
     regular = np.linspace(0, n - 1, budget).round().astype(np.int64)
-    return np.unique(np.concatenate([regular, ends]))
+    return unique(np.concatenate([regular, ends]))  # not np.unique: no numpy.ma import
 
 
 def _mesh_data(poly: Polyhedron, scale: float) -> dict[str, Any]:
