@@ -31,6 +31,7 @@ Open3D is optional: it is imported by the functions that need it
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
 
@@ -790,25 +791,32 @@ def evaluate(
     obstacle: tuple[ModelCloud, FloatArray] | None = None,
     free_space_tolerance: float = 0.005,
     occluder: npt.ArrayLike | None = None,
+    pool: Executor | None = None,
 ) -> Registration:
     """Score a pose of a model against observed points (and the depth image): a Registration.
 
     The fitness and RMS residual against the dense samples; with ``depth`` and ``camera``,
     the surface check (the confidence); with ``obstacle``, the penetration. The parameters
-    are those of :func:`register`.
+    are those of :func:`register`. With ``pool``, the fitness's k-d query (which releases the
+    GIL) runs on a thread of it while this one renders the surface check: the same numbers.
     """
     P = np.asarray(points_C, dtype=np.float64)
     X = orthonormalised(X_CM)
     reach = inlier_distance + 2 * model.spacing  # no farther point is an inlier: exact
-    plane, point = model.residuals(transform_points(invert_pose(X), P), max_distance=reach)
-    inlier = (plane <= inlier_distance) & (point <= reach)
-    fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
-    rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
+    P_M = transform_points(invert_pose(X), P)
+    fit = None
+    if pool is not None:
+        model.tree()  # built here, never by two threads
+        fit = pool.submit(model.residuals, P_M, max_distance=reach)
     surface = None
     if depth is not None and camera is not None:
         surface = surface_check(
             X, model, depth, camera, tolerance=free_space_tolerance, occluder=occluder
         )
+    plane, point = model.residuals(P_M, max_distance=reach) if fit is None else fit.result()
+    inlier = (plane <= inlier_distance) & (point <= reach)
+    fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
+    rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
     pen = penetration(X, model, obstacle) if obstacle is not None else 0.0
     violation = surface.violation if surface is not None else 0.0
     return Registration(X, fitness, rmse, violation, len(P), pen, surface)
@@ -831,6 +839,7 @@ def register_projective(
     occluder: npt.ArrayLike | None = None,
     clutter: bool = False,
     shared: npt.ArrayLike | None = None,
+    pool: Executor | None = None,
 ) -> Registration:
     """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
 
@@ -866,16 +875,19 @@ def register_projective(
     shared : ndarray of bool, shape (H, W), optional
         Object pixels within the noise of the occluder's surface (not in ``mask``): see
         :func:`apo.perception.projective.projective_icp`.
+    pool : Executor, optional
+        Scores the fitness on a thread of it (see :func:`evaluate`).
     """
     constraint = None if obstacle is None else _non_penetration(model, obstacle)
     res = projective_icp(
         depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
         start_scale=start_scale, iterations=iterations, occluder=occluder,
-        constraint=constraint, clutter=clutter, shared=shared,
+        constraint=constraint, clutter=clutter, shared=shared, extrapolate=True,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
         obstacle=obstacle, free_space_tolerance=free_space_tolerance, occluder=occluder,
+        pool=pool,
     )  # fmt: skip
 
 

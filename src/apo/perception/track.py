@@ -121,6 +121,14 @@ class TrackOptions:
         When the frame-to-frame ICP moves a model vertex farther than this from the
         prediction, it is run once more from its result (it may have stopped on its
         iteration limit short of the minimum: 1.7 mm off, measured, in fast motion).
+    start_factor : float or None
+        The projective ICP's first Tukey scale from the prediction is this many times the
+        largest prediction error of the last three frames (how far the tracked pose was
+        from the prediction), within the reach (``track_distance``, or three inlier
+        distances) and at least the noise's scale (the ICP's final scale): the
+        prediction's own uncertainty, not the reach's. Started at the reach, the scale
+        took two halvings to come down to the noise's. Not with depth alone (see
+        ``_Tracker.start_scale``). None: always the reach.
     min_points : int
         Fewer observed points than this: the object is not visible (lost).
     max_points : int
@@ -167,6 +175,7 @@ class TrackOptions:
     good_confidence: float = 0.98
     track_distance: float = 0.006
     settle_distance: float = 0.002
+    start_factor: float | None = 3.0
     rmse_factor: float = 2.0
     min_points: int = 60
     max_points: int = 1500
@@ -673,6 +682,7 @@ class _Tracker:
         self.lost = np.ones(n, dtype=bool)
         self.reinit = np.zeros(n, dtype=bool)
         self.history: list[FloatArray] = []  # last tracked poses (for the prediction)
+        self.errors: list[float] = []  # how far the last tracked poses were from the predicted
         self.rmses: list[float] = []  # RMS residuals of the last tracked frames
         self.confs: list[float] = []  # and their confidences
         self.fits: list[float] = []  # and qualities
@@ -681,6 +691,7 @@ class _Tracker:
         self.margin = self.opt.track_distance + 0.1 * self.G.diameter
         self.obstacle = (scene.E, scene.X_CE)
         self.centre = (self.G.vertices.min(0) + self.G.vertices.max(0)) / 2
+        self.pool: Executor | None = None  # scores the fitness meanwhile (register.evaluate)
 
     def predict(self, i: int) -> FloatArray | None:
         """Constant velocity from the last two frames (never across a gap or a re-start)."""
@@ -778,6 +789,20 @@ class _Tracker:
         rm = self.rmses
         return len(rm) < 3 or r.rmse <= self.opt.rmse_factor * float(np.median(rm))
 
+    def start_scale(self, reach: float) -> float:
+        """Return the projective ICP's first Tukey scale from the prediction (``start_factor``).
+
+        The reach until three frames were tracked in a row since the last re-start, and
+        always with clutter (depth alone): there a pixel in front of the model by more than
+        the scale seeds an occluder (:func:`apo.perception.projective.occluders`), and the
+        smaller first scale made a hand's pixels the part's (dev seed 2, a square peg held
+        by a hand: 43 frames flipped).
+        """
+        factor = self.opt.start_factor
+        if factor is None or self.clutter or len(self.errors) < 3 or self.gap:
+            return reach
+        return min(reach, factor * max(self.errors[-3:]))
+
     def track_window(
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], pred: FloatArray
     ) -> Registration | None:
@@ -790,7 +815,8 @@ class _Tracker:
         starts = [pred] if len(self.history) < 2 or self.gap else [pred, self.history[-1]]
         if self.opt.projective:  # from the prediction, then from the last pose
             for start in starts:
-                r = self.projective(start, d, c, pts, mask, env_d, reach, kw, shared)
+                first = self.start_scale(reach) if start is pred else reach
+                r = self.projective(start, d, c, pts, mask, env_d, reach, kw, shared, first)
                 if _better(r, result):
                     result = r
                 if result is not None and self.good(result):
@@ -846,22 +872,24 @@ class _Tracker:
     def projective(
         self, pred: FloatArray, d: npt.NDArray[np.float32], c: Camera, pts: FloatArray,
         mask: BoolArray, env_d: npt.NDArray[np.float32], reach: float, kw: dict[str, Any],
-        shared: BoolArray | None = None,
+        shared: BoolArray | None = None, first: float | None = None,
     ) -> Registration:  # fmt: skip
         """Projective ICP from the prediction; once more from its result when it moved far.
 
-        Its Tukey scale shrinks from ``reach`` at every step: after a motion larger than the
-        prediction foresaw (right after a re-initialisation there is no velocity), the
-        first run can stop short (1.6 mm, measured). The second run's result is kept only
-        within ``reach`` of the first (a square peg deep in its hole, a few faces in view,
-        once turned 90 deg with the same confidence).
+        Its Tukey scale shrinks from ``first`` (default ``reach``) at every step: after a
+        motion larger than the prediction foresaw (right after a re-initialisation there is
+        no velocity), the first run can stop short (1.6 mm, measured); the second starts at
+        ``reach``. Its result is kept only within ``reach`` of the first (a square peg deep
+        in its hole, a few faces in view, once turned 90 deg with the same confidence).
         """
         args = {k: v for k, v in kw.items() if k not in ("loss", "depth", "camera", "engine")}
         sigma = self.scene.noise.sigma(d)
         args["clutter"] = self.clutter
         args["shared"] = shared
+        args["pool"] = self.pool
         r = register_projective(d, c, self.G, pred, points_C=pts, mask=mask, sigma=sigma,
-                                start_scale=reach, **args)  # fmt: skip
+                                start_scale=reach if first is None else first,
+                                **args)  # fmt: skip
         if _displacement(self.G, pred, r.X_CM) > self.opt.settle_distance:
             again = register_projective(d, c, self.G, r.X_CM, points_C=pts, mask=mask,
                                         sigma=sigma, start_scale=reach, **args)  # fmt: skip
@@ -921,6 +949,8 @@ class _Tracker:
         self.lost[i] = False
         # A velocity never spans a re-initialisation: start the history afresh.
         self.history = [X] if fresh else [*self.history[-1:], X]
+        moved = _displacement(self.G, pred, X) if pred is not None and not fresh else None
+        self.errors = [] if moved is None else [*self.errors[-2:], moved]
         self.rmses = [*self.rmses[-9:], result.rmse]
         self.confs = [*self.confs[-9:], result.confidence]
         self.fits = [*self.fits[-9:], result.quality]
@@ -1004,7 +1034,10 @@ def track_frames(
                 f.cancel()
     n = len(src)
     tracker = _Tracker(scene, XG0)
-    with ThreadPoolExecutor(max_workers=1) as pool:  # decode the next frame meanwhile
+    # Decode the next frame meanwhile, and score each result's fitness while its surface
+    # check renders (register.evaluate).
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tracker.pool = pool
         colour = scene.seg.colour.used  # else the colour PNGs are not decoded at all
         pending = pool.submit(_read, src, 0, scene.cache, colour=colour)
         for i in range(n):

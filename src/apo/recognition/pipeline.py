@@ -265,7 +265,7 @@ def _recognise_once(
     scene = make_scene(grasped, environment, X, threshold, costs, est, floor_share)
     observed = observe(scene, memoize=memoize, progress=progress, jobs=jobs)
     tm["contacts"] = time.perf_counter() - t0
-    dists = StreamedDistances(grasped, environment, X, scene.unit)
+    dists = StreamedDistances(grasped, environment, X, scene.unit, jobs=jobs)
     path0, own, seen = _timed(tm, "segmentation", first_pass, scene, observed, dists)
     an = _timed(tm, "analysis", analyse_needed, scene, observed, own, path0)
     seg = _timed(tm, "segmentation", segment, scene, an, dists, observed, seen)
