@@ -235,6 +235,10 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
     streamed task.json (d68de35): 2,493 and 2,485 from 1,000 frames. Session 6 (r9mem): the
     contact search without a bytes key and a copy per pose and without the (frames, widest
     frame) matrix of element codes: 369 and 444; the old search gives 497 again here.
+    Session 7 (r9mem): the states held as rows of arrays (``apo.task.StateTable``, their
+    elements placed when written) and the report's pose rows made a block at a time: 369
+    and 251 (the states as objects: 477; the report's rows made at once: the peak of the
+    repeated input).
     """
     import subprocess
     import sys
@@ -244,37 +248,64 @@ def test_memory_per_frame_is_bounded(tmp_path) -> None:
         capture_output=True, text=True, check=True,
     ).stdout  # fmt: skip
     per_frame = {k: float(v) for k, v in (line.split() for line in out.strip().splitlines())}
-    bound = {"distinct": 450, "repeated": 520}
+    bound = {"distinct": 420, "repeated": 320}
     for kind, limit in bound.items():
         assert per_frame[kind] < limit, (kind, per_frame)
 
 
-def test_states_at_a_pose_met_again_share_their_records(seed: int = 6) -> None:
-    """A demonstration repeated: runs of a candidate at the same pose share the pose and the
-    element objects, which hold the values each run's own records would."""
-    from apo.recognition.build import _Placed
+def test_states_are_rows_placed_when_read(seed: int = 6) -> None:
+    """A long task's states are rows of arrays: each state read is made from its row, its
+    elements the candidate's placed at the state's pose (a point on G moves with it, a point
+    on a vertex of E stays), the values of placing them element by element; the table holds
+    a few hundred bytes a state (the states themselves took 1.4 KB each)."""
+    import pickle
+    import tracemalloc
+
+    from apo.spatial import invert_pose
+    from apo.task import StateTable, TransitionTable
 
     demo = add_noise(random_variant(seed), sigma_mm=1.0, sigma_deg=1.0, seed=seed)
     X = np.concatenate([demo.X_EG] * 3)
     t = np.arange(len(X)) / 30.0
     rec = recognize_frames(demo.grasped, demo.environment, t, X)
-    states = rec.task.states
-    assert len(states) >= 3 * 2
-    first: dict[bytes, Any] = {}
-    shared = 0
-    for s in states:
-        key = s.X_EG.tobytes() + repr([e.key for e in s.elements]).encode()
-        if key in first:
-            assert first[key].X_EG is s.X_EG and first[key].elements is s.elements
-            shared += 1
-        first.setdefault(key, s)
-    assert shared >= len(states) // 3  # the second and third repeats
-    for s in states:  # each state's elements: the candidate's placed at its pose, afresh
+    states, transitions = rec.task.states, rec.task.transitions
+    assert isinstance(states, StateTable) and isinstance(transitions, TransitionTable)
+    assert len(states) >= 3 * 2 and len(states[1:]) == len(states) - 1
+    first: dict[tuple[Any, ...], str] = {}
+    for i, s in enumerate(states):
+        assert s.id == states.ids[i] and states[i - len(states)].id == s.id
         cand = rec.candidates[int(rec.assigned[s.frames[0]])]
-        again = _Placed(cand)._place(s.X_EG)
-        for a, b in zip(s.elements, again, strict=True):
-            assert a.key == b.key and np.array_equal(a.point, b.point)
+        T = s.X_EG @ invert_pose(cand.X_EG)
+        for a, b in zip(s.elements, cand.state.elements, strict=True):
+            fixed = str(b.kind) in ("FV", "EV")
+            want = b.point if fixed else T[:3, :3] @ b.point + T[:3, 3]
+            assert a.key == b.key and np.array_equal(a.point, want)
             assert np.array_equal(a.normals, b.normals)
+        key = tuple(e.key for e in s.elements)
+        assert s.same_as == first.get(key)
+        first.setdefault(key, s.id)
+    for i, tr in enumerate(transitions):
+        assert (tr.from_id, tr.to_id, tr.frame) == (
+            states.ids[i],
+            states.ids[i + 1],
+            states[i + 1].frames[0],
+        )
+    assert rec.task.state(states.ids[-1]).frames == states[-1].frames
+    # the rows of one more repeat of the demonstration: those of its states alone
+    rec2 = recognize_frames(demo.grasped, demo.environment, np.arange(len(X) * 2) / 30.0,
+                            np.concatenate([X, X]))  # fmt: skip
+    rows = len(rec2.task.states) - len(states)
+    assert rows >= len(states) // 2
+    size = [len(pickle.dumps((r.task.states, r.task.transitions))) for r in (rec, rec2)]
+    tuples = [len(pickle.dumps((tuple(r.task.states), tuple(r.task.transitions))))
+              for r in (rec, rec2)]  # fmt: skip
+    per_row, per_state = (size[1] - size[0]) / rows, (tuples[1] - tuples[0]) / rows
+    assert per_row < 300 < per_state, (per_row, per_state)  # pickled, shared objects once
+    tracemalloc.start()
+    made = list(rec2.task.states)
+    held = tracemalloc.get_traced_memory()[0] / len(made)  # the states made, in memory
+    tracemalloc.stop()
+    assert held > 3 * per_row, (held, per_row)
 
 
 def _pose_list_variants(tmp: Path) -> list[Path]:
@@ -484,3 +515,17 @@ def test_pose_defect_in_blocks_is_that_of_all_poses(monkeypatch) -> None:
     for block in (1, 3, 64):
         monkeypatch.setattr(spatial, "DEFECT_BLOCK", block)
         assert [spatial.pose_defect(X) for X in cases] == want
+
+
+def test_report_pose_rows_in_blocks_are_those_of_all_kept_frames(monkeypatch) -> None:
+    """The report's pose rows of the kept frames, made a block at a time: the same bytes."""
+    import apo.report.html as html
+
+    rng = np.random.default_rng(5)
+    demo = add_noise(random_variant(15), sigma_mm=1.0, sigma_deg=1.0, seed=15)
+    X = demo.X_EG[rng.integers(0, len(demo.X_EG), 500)]
+    keep = np.unique(rng.integers(0, len(X), 300))
+    want = html.pack_array(html.poses_to_rows(X[keep], 1000.0), "f4")
+    for block in (1, 7, 4096):
+        monkeypatch.setattr(html, "POSE_ROWS_BLOCK", block)
+        assert html.pack_array(html._kept_pose_rows(X, keep, 1000.0), "f4") == want

@@ -32,7 +32,8 @@ from apo import synthetic, task as task_mod
 from apo.contact import search
 from apo import workers
 from apo.recognition import recognize_frames
-from apo.recognition.contacts import label_frames
+from apo.recognition.contacts import label_frames, observe
+from apo.recognition.distances import element_distances, split_distances
 from apo.recognition.correction import correct_by_label
 from apo.recognition.pipeline import make_scene
 from apo.recognition.types import SegmentationCosts
@@ -66,7 +67,7 @@ except ChildProcessError:
 
 # the contact search and the correction: parts == one process, bit for bit
 search._BATCH_PRIMITIVES = 64  # blocks of a few frames: several blocks per part
-same_labels, same_corr, same_task, forked = [], [], [], []
+same_labels, same_corr, same_task, forked, same_dist = [], [], [], [], []
 for seed in (3, 17, 29, 41):
     demo = synthetic.add_noise(synthetic.random_variant(seed), sigma_mm=2.0, sigma_deg=2.0,
                                seed=seed)
@@ -76,6 +77,11 @@ for seed in (3, 17, 29, 41):
     for jobs in (2, 3):
         got = label_frames(scene.finder, X, jobs=jobs)
         same_labels.append(all(np.array_equal(u, v) for u, v in zip(one, got)))
+    keys = sorted({e for st in observe(scene, jobs=1).states for e in st.key})
+    alone = element_distances(G, E, X, keys)
+    for jobs in (2, 3):
+        got = split_distances(G, E, X, keys, jobs)
+        same_dist.append([np.array_equal(got, alone), type(got.base.base).__name__])
     rec = recognize_frames(G, E, demo.times, X, jobs=1)
     some = next(c.state for c in rec.candidates if c is not None)
     states = [some if c is None else c.state for c in rec.candidates]
@@ -93,7 +99,8 @@ for seed in (3, 17, 29, 41):
             and np.array_equal(r2.observed, rec.observed)
             and np.array_equal(r2.converged, rec.converged)
         )
-out.update(labels=same_labels, correction=same_corr, task=same_task, forked=forked)
+out.update(labels=same_labels, correction=same_corr, task=same_task, forked=forked,
+           distances=same_dist)
 print(json.dumps(out))
 """
 
@@ -136,6 +143,11 @@ def test_contact_labels_split_over_processes_are_those_of_one(forked: dict[str, 
 def test_correction_split_over_processes_is_that_of_one(forked: dict[str, Any]) -> None:
     assert forked["correction"] and all(forked["correction"])
     assert set(forked["forked"]) == {"memoryview"}  # the parallel runs wrote shared arrays
+
+
+def test_distances_split_over_processes_are_those_of_one(forked: dict[str, Any]) -> None:
+    """Each key's column computed in either process: element_distances bit for bit."""
+    assert forked["distances"] == [[True, "memoryview"]] * 8
 
 
 def test_recognition_with_jobs_is_the_same_bit_for_bit(forked: dict[str, Any]) -> None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -282,30 +282,31 @@ def _rotation_angles(R: FloatArray) -> FloatArray:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
 class _Rows:
     """Residual rows of a set of elements, gathered by form (see :class:`ContactConstraints`).
 
     Point rows ``k . (R g + t) - d`` (``pg``, ``pk``, ``pd``), direction rows
     ``(R u) . (q - t) - c`` (``du``, ``dq``, ``dc``), edge rows (``ea``, ``eu``: a point and
     direction of G's edge; ``eb``, ``ee``: of E's; ``eref``: the sign reference), and the
-    element index of each row (``p_el``, ``d_el``, ``e_el``).
+    element index of each row (``p_el``, ``d_el``, ``e_el``). Each starts empty. (A plain
+    class, not a dataclass: a dataclass's methods are compiled at every import.)
     """
 
-    pg: list[FloatArray] = field(default_factory=list)
-    pk: list[FloatArray] = field(default_factory=list)
-    pd: list[float] = field(default_factory=list)
-    p_el: list[int] = field(default_factory=list)
-    du: list[FloatArray] = field(default_factory=list)
-    dq: list[FloatArray] = field(default_factory=list)
-    dc: list[float] = field(default_factory=list)
-    d_el: list[int] = field(default_factory=list)
-    ea: list[FloatArray] = field(default_factory=list)
-    eu: list[FloatArray] = field(default_factory=list)
-    eb: list[FloatArray] = field(default_factory=list)
-    ee: list[FloatArray] = field(default_factory=list)
-    eref: list[FloatArray] = field(default_factory=list)
-    e_el: list[int] = field(default_factory=list)
+    def __init__(self) -> None:
+        self.pg: list[FloatArray] = []
+        self.pk: list[FloatArray] = []
+        self.pd: list[float] = []
+        self.p_el: list[int] = []
+        self.du: list[FloatArray] = []
+        self.dq: list[FloatArray] = []
+        self.dc: list[float] = []
+        self.d_el: list[int] = []
+        self.ea: list[FloatArray] = []
+        self.eu: list[FloatArray] = []
+        self.eb: list[FloatArray] = []
+        self.ee: list[FloatArray] = []
+        self.eref: list[FloatArray] = []
+        self.e_el: list[int] = []
 
 
 def _feature(poly: Polyhedron, feat: tuple[str, int], want: str, i: int) -> int:

@@ -11,13 +11,14 @@ constraint is ``(P_i x F_i) . S0 + F_i . S1 >= 0`` (paper eq. 2).
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -657,8 +658,7 @@ def _canonical_rows(rows: FloatArray) -> FloatArray:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class _Regular:
+class _Regular(NamedTuple):  # not a dataclass: no methods made at import
     translation: SpaceDof
     rotation: RotationDof
     all: SpaceDof
@@ -676,8 +676,7 @@ def _normalised_columns(
     return f, w
 
 
-@dataclass(frozen=True)
-class _TranslationPart:
+class _TranslationPart(NamedTuple):
     """Translation DOF of a regular state (eq. 3) and the subspaces that come with it."""
 
     dof: SpaceDof
@@ -824,6 +823,10 @@ def _detaching_direction(
         y, *_ = np.linalg.lstsq(a, np.ones(a.shape[0]), rcond=None)
         u = t_det.T @ y
         return np.asarray(u / np.linalg.norm(u), dtype=np.float64)
+    x = _detaching_vertex(a, tolerances)
+    if x is not None:  # the unique optimum, proven: no LP solver needed (nor imported)
+        u = t_det.T @ x
+        return np.asarray(u / np.linalg.norm(u), dtype=np.float64)
     inf = float("inf")  # = highspy.kHighsInf
     lp = _highs_lp(
         a.sum(axis=0),
@@ -838,6 +841,46 @@ def _detaching_direction(
         return np.zeros(3)
     u = t_det.T @ x
     return np.asarray(u / np.linalg.norm(u), dtype=np.float64)
+
+
+#: Rows of the detaching-direction LP up to which :func:`_detaching_vertex` enumerates its
+#: bases (``C(k, d)``: 560 at 16 rows in 3 dimensions); beyond, HiGHS solves it.
+_VERTEX_LP_ROWS = 16
+
+
+def _detaching_vertex(a: FloatArray, tolerances: Tolerances) -> FloatArray | None:
+    """Solve the LP of :func:`_detaching_direction` at its vertices, where its optimum is unique.
+
+    ``min c . y`` with ``c = sum_i a_i``, s.t. ``a_i . y >= 1`` (``a``: (k, d), d <= 3). Each
+    basis ``B`` of ``d`` rows gives the vertex ``y = B^-1 1``; a feasible vertex whose dual
+    ``lam = B^-T c`` is positive in every entry is the only optimum (for any feasible ``y``,
+    ``c . y - c . y* = lam . (B y - 1) >= 0``, zero only where ``B y = 1``), so any LP solver
+    returns it, to rounding (tests/test_dof_vertex_lp.py: HiGHS's solution within 1e-11 on
+    random LPs; 5e-14 seen). The HiGHS import (10 ms of a cold start) and its solve are then
+    not needed. Returns None where no basis proves it (a tie, a degenerate or ill-conditioned basis,
+    more than ``_VERTEX_LP_ROWS`` rows): HiGHS decides.
+    """
+    k, d = a.shape
+    if k > _VERTEX_LP_ROWS or d > 3:
+        return None
+    rows = np.array(list(itertools.combinations(range(k), d)), dtype=np.int64)
+    bases = a[rows]  # (m, d, d)
+    sv = np.linalg.svd(bases, compute_uv=False)
+    bases = bases[sv[:, -1] > tolerances.rank * sv[:, 0]]  # well-conditioned ones only
+    if not len(bases):
+        return None
+    y = np.linalg.solve(bases, np.ones((len(bases), d, 1)))[..., 0]  # (m, d)
+    c = a.sum(axis=0)
+    lam = np.linalg.solve(np.swapaxes(bases, 1, 2), np.broadcast_to(c, y.shape)[..., None])[..., 0]
+    feasible = (a @ y.T >= 1.0 - tolerances.cone).all(axis=0)
+    cost = np.where(feasible, y @ c, np.inf)
+    proof = feasible & (lam.min(axis=1) > tolerances.rank * np.abs(lam).sum(axis=1))
+    if not proof.any():
+        return None
+    best = np.flatnonzero(proof)[np.argmin(cost[proof])]
+    if cost[best] > cost.min() + tolerances.cone * abs(cost[best]):  # a near tie: HiGHS decides
+        return None
+    return np.asarray(y[best], dtype=np.float64)
 
 
 def _maintaining_twists(

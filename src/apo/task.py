@@ -13,10 +13,11 @@ G in the environment frame E (``docs/conventions.md``).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal, cast
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal, TypeVar, cast, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from apo.constants import UNITS, tol
 from apo.contact import ContactElement, Feature
@@ -49,9 +50,12 @@ __all__ = [
     "Rejected",
     "State",
     "StateGraph",
+    "StateKind",
+    "StateTable",
     "SubSkill",
     "TaskModel",
     "Transition",
+    "TransitionTable",
     "check_graph",
     "element_from_dict",
     "element_to_dict",
@@ -60,6 +64,7 @@ __all__ = [
     "model_to_dict",
     "state_graph",
     "state_letters",
+    "state_spans",
     "task_from_dict",
     "task_head",
     "task_json_chunks",
@@ -197,6 +202,266 @@ class Rejected:
     reason: str
 
 
+#: Kinds of contact element whose point lies on the environment (a vertex of E): it stays
+#: where it is when G moves. The others' points lie on G and move with it.
+FIXED_POINT_KINDS = ("FV", "EV")
+
+
+@dataclass(frozen=True, slots=True)
+class StateKind:
+    """What every visit of one contact state shares in a :class:`StateTable`.
+
+    Attributes
+    ----------
+    singular, fig25, six
+        As in :class:`State` (the same objects in every visit's state).
+    elements : tuple of Element
+        The contact elements at the reference pose whose inverse is ``inv_ref``.
+    inv_ref : ndarray, shape (4, 4)
+        Inverse of the reference pose: a visit at the pose ``X`` has its elements moved by
+        ``X @ inv_ref`` (:meth:`points_at`).
+    """
+
+    singular: bool
+    fig25: tuple[int, int, int, int, int, int, int, int]
+    six: Mapping[str, tuple[int, int, int, int, int, int]]
+    elements: tuple[Element, ...]
+    inv_ref: FloatArray
+
+    def points_at(self, X: FloatArray) -> FloatArray:
+        """Return the elements' points at the poses ``X`` (m, 4, 4): shape (m, elements, 3).
+
+        A point on G (kinds VF, VE, VV, EE) moves with it: ``T[:3, :3] @ p + T[:3, 3]`` with
+        ``T = X @ inv_ref``; a point on a vertex of E (FV, EV) stays. Each pose's numbers
+        are those of that pose alone (numpy's stacked products: the same per matrix).
+        """
+        X = np.asarray(X, dtype=np.float64).reshape(-1, 4, 4)
+        T = X @ self.inv_ref
+        out = np.empty((len(X), len(self.elements), 3))
+        for j, e in enumerate(self.elements):
+            fixed = e.kind in FIXED_POINT_KINDS
+            out[:, j] = e.point if fixed else T[:, :3, :3] @ e.point + T[:, :3, 3]
+        return out
+
+    def elements_at(self, X: FloatArray) -> tuple[Element, ...]:
+        """Return the elements with their points at the pose ``X`` (4, 4) (:meth:`points_at`)."""
+        points = self.points_at(X)[0]
+        return tuple(
+            e if e.kind in FIXED_POINT_KINDS
+            else Element(e.kind, e.grasped, e.environment, points[j], e.normals)
+            for j, e in enumerate(self.elements)
+        )  # fmt: skip
+
+
+_T = TypeVar("_T")
+
+
+class _Rows(Sequence[_T]):
+    """A sequence whose items are made from rows when they are read (the tables below).
+
+    Subclasses give ``__len__``, ``_item(i)`` (``0 <= i < len``) and ``_rows(a, b)`` (the
+    items ``a`` to ``b - 1``, ``a < b``, as a table); a slice with a step is a tuple.
+    """
+
+    __slots__ = ()
+
+    def _item(self, i: int) -> _T:
+        raise NotImplementedError
+
+    def _rows(self, a: int, b: int) -> Sequence[_T]:
+        raise NotImplementedError
+
+    @overload
+    def __getitem__(self, i: int) -> _T: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> Sequence[_T]: ...
+
+    def __getitem__(self, i: int | slice) -> _T | Sequence[_T]:
+        if isinstance(i, slice):
+            a, b, step = i.indices(len(self))
+            if step != 1 or b <= a:
+                return tuple(self._item(j) for j in range(a, b, step))
+            return self._rows(a, b)
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"index {i} out of range for {n} rows")
+        return self._item(i % n)
+
+    def __iter__(self) -> Iterator[_T]:
+        return (self._item(i) for i in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        same: bool = _same_items(self, other)  # or NotImplemented
+        return same
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class StateTable(_Rows[State]):
+    """A task's states held as arrays, each :class:`State` made when it is read.
+
+    A long demonstration has thousands of visits of a few contact states: the states'
+    frames, times, poses and flags are rows of arrays, and what the visits of one contact
+    state share (DOF numbers, elements at a reference pose) is one :class:`StateKind`; a
+    state's elements are placed at its pose when the state is read (``table[i]``, iteration:
+    a new :class:`State` each time, with the values the recognition gives). About 200 bytes
+    a state, where the states themselves took 1.4 KB (docs/recognition.md, "Session 7:
+    memory"). ``task.json`` is written from the arrays (:func:`task_json_chunks`).
+
+    Attributes
+    ----------
+    ids : list of str
+    frames : ndarray of int, shape (n, 2)
+    times : ndarray of float, shape (n, 2)
+    poses : ndarray, shape (n, 4, 4)
+    kind : ndarray of int, shape (n,)
+        Index into ``kinds`` of each state.
+    kinds : list of StateKind
+    pose_frames : ndarray of int, shape (n,)
+        ``State.pose_frame``, -1 for None.
+    converged : ndarray of bool, shape (n,)
+    same_as : list of (str or None)
+    """
+
+    __slots__ = ("converged", "frames", "ids", "kind", "kinds", "pose_frames", "poses",
+                 "same_as", "times")  # fmt: skip
+
+    def __init__(
+        self,
+        ids: Sequence[str],
+        frames: npt.ArrayLike,
+        times: npt.ArrayLike,
+        poses: npt.ArrayLike,
+        kind: npt.ArrayLike,
+        kinds: Sequence[StateKind],
+        pose_frames: npt.ArrayLike,
+        converged: npt.ArrayLike,
+        same_as: Sequence[str | None],
+    ) -> None:
+        self.ids = list(ids)
+        self.frames = np.asarray(frames, dtype=np.int64).reshape(-1, 2)
+        self.times = np.asarray(times, dtype=np.float64).reshape(-1, 2)
+        self.poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        self.kind = np.asarray(kind, dtype=np.int64).reshape(-1)
+        self.kinds = kinds if isinstance(kinds, list) else list(kinds)
+        self.pose_frames = np.asarray(pose_frames, dtype=np.int64).reshape(-1)
+        self.converged = np.asarray(converged, dtype=bool).reshape(-1)
+        self.same_as = list(same_as)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def _rows(self, a: int, b: int) -> StateTable:
+        return StateTable(
+            self.ids[a:b], self.frames[a:b], self.times[a:b], self.poses[a:b], self.kind[a:b],
+            self.kinds, self.pose_frames[a:b], self.converged[a:b], self.same_as[a:b],
+        )  # fmt: skip
+
+    def __repr__(self) -> str:
+        return f"<StateTable of {len(self)} states, {len(self.kinds)} distinct>"
+
+    def index(self, value: Any, start: int = 0, stop: int | None = None) -> int:
+        """Return the index of the state ``value`` (a state read from here: its id, frames)."""
+        stop = len(self) if stop is None else stop
+        if isinstance(value, State) and value.id in self.ids[start:stop]:
+            i = self.ids.index(value.id, start, stop)
+            if tuple(self.frames[i].tolist()) == tuple(value.frames):
+                return i
+        raise ValueError(f"{value!r} is not in the table")
+
+    def __contains__(self, value: object) -> bool:
+        try:
+            self.index(value)
+        except ValueError:
+            return False
+        return True
+
+    def _item(self, i: int) -> State:
+        kd = self.kinds[int(self.kind[i])]
+        X = self.poses[i].copy()
+        a, b = self.frames[i].tolist()
+        t0, t1 = self.times[i].tolist()
+        pf = int(self.pose_frames[i])
+        return State(
+            id=self.ids[i], frames=(a, b), times=(t0, t1), singular=kd.singular, fig25=kd.fig25,
+            six=kd.six, elements=kd.elements_at(X), X_EG=X, pose_frame=None if pf < 0 else pf,
+            pose_converged=bool(self.converged[i]), same_as=self.same_as[i],
+        )  # fmt: skip
+
+    def placed_points(self) -> FloatArray:
+        """Return the points of every state's elements, state by state: shape (elements, 3).
+
+        :meth:`StateKind.points_at` of each kind's states at once (their own poses).
+        """
+        counts = np.array([len(k.elements) for k in self.kinds], dtype=np.int64)[self.kind]
+        start = np.cumsum(counts) - counts
+        out = np.empty((int(counts.sum()), 3))
+        for k, kd in enumerate(self.kinds):
+            rows = np.flatnonzero(self.kind == k)
+            if len(rows) and kd.elements:
+                at = start[rows][:, None] + np.arange(len(kd.elements))
+                out[at] = kd.points_at(self.poses[rows])
+        return out
+
+
+class TransitionTable(_Rows[Transition]):
+    """A task's transitions held as rows, each :class:`Transition` made when it is read.
+
+    Transition ``i`` goes from state ``ids[i]`` to ``ids[i + 1]`` at ``frames[i]`` and is
+    otherwise ``kinds[which[i]]`` (the record of the first change between the same two
+    contact states: its DOF transitions, sub-skills, marks).
+    """
+
+    __slots__ = ("frames", "ids", "kinds", "which")
+
+    def __init__(
+        self,
+        ids: Sequence[str],
+        frames: npt.ArrayLike,
+        which: npt.ArrayLike,
+        kinds: Sequence[Transition],
+    ) -> None:
+        self.frames = np.asarray(frames, dtype=np.int64).reshape(-1)
+        self.which = np.asarray(which, dtype=np.int64).reshape(-1)
+        self.ids = list(ids)
+        self.kinds = kinds if isinstance(kinds, list) else list(kinds)
+        if len(self.ids) != len(self.frames) + 1 and len(self.frames):
+            raise ValueError("a transition table needs one state id more than transitions")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def _rows(self, a: int, b: int) -> TransitionTable:
+        ids = self.ids[a : b + 1]
+        return TransitionTable(ids, self.frames[a:b], self.which[a:b], self.kinds)
+
+    def __repr__(self) -> str:
+        return f"<TransitionTable of {len(self)} transitions, {len(self.kinds)} distinct>"
+
+    def _item(self, i: int) -> Transition:
+        return replace(
+            self.kinds[int(self.which[i])], from_id=self.ids[i], to_id=self.ids[i + 1],
+            frame=int(self.frames[i]),
+        )  # fmt: skip
+
+
+def _same_items(table: Sequence[Any], other: object) -> Any:
+    """``tuple(table) == tuple(other)`` for another sequence (a table equals its tuple)."""
+    if other is table:
+        return True
+    if not isinstance(other, Sequence) or isinstance(other, str | bytes):
+        return NotImplemented
+    return len(table) == len(other) and bool(tuple(table) == tuple(other))
+
+
+def state_spans(states: Sequence[State]) -> list[tuple[str, int, int]]:
+    """Return ``(id, first frame, last frame)`` of each state (a table's states not made)."""
+    if isinstance(states, StateTable):
+        return [(s, a, b) for s, (a, b) in zip(states.ids, states.frames.tolist(), strict=True)]
+    return [(s.id, int(s.frames[0]), int(s.frames[1])) for s in states]
+
+
 @dataclass(frozen=True)
 class ModelRef:
     """A model file: path as written (relative to ``task.json`` or absolute) and its hash.
@@ -223,9 +488,10 @@ class TaskModel:
     units : str
         Length unit of the JSON form (``UNITS``); the model itself is in metres.
     grasped, environment : ModelRef
-    states : tuple of State
-    transitions : tuple of Transition
-        ``len(states) - 1`` of them, in order.
+    states : sequence of State
+        A tuple, or from the recognition a :class:`StateTable` (the states made as read).
+    transitions : sequence of Transition
+        ``len(states) - 1`` of them, in order (a tuple or a :class:`TransitionTable`).
     rejected : tuple of Rejected
     n_frames : int
     frame : str
@@ -239,8 +505,8 @@ class TaskModel:
     units: str
     grasped: ModelRef
     environment: ModelRef
-    states: tuple[State, ...]
-    transitions: tuple[Transition, ...]
+    states: Sequence[State]
+    transitions: Sequence[Transition]
     rejected: tuple[Rejected, ...] = ()
     n_frames: int = 0
     frame: str = "environment"
@@ -256,6 +522,10 @@ class TaskModel:
         KeyError
             If there is none.
         """
+        if isinstance(self.states, StateTable):
+            if state_id in self.states.ids:
+                return self.states[self.states.ids.index(state_id)]
+            raise KeyError(state_id)
         for s in self.states:
             if s.id == state_id:
                 return s
@@ -416,6 +686,8 @@ def _state_lines(states: Sequence[State], k: float, memo: dict[Any, Any]) -> lis
     """
     if not states:
         return []
+    if isinstance(states, StateTable):
+        return _table_state_lines(states, k, memo)
     quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in states]))
     pos = np.array([np.asarray(st.X_EG, dtype=float)[:3, 3] for st in states])
     times = np.array([st.times for st in states], dtype=float)
@@ -449,7 +721,46 @@ def _state_lines(states: Sequence[State], k: float, memo: dict[Any, Any]) -> lis
     return out
 
 
-def _dof_text(s: State, memo: dict[Any, Any]) -> str:
+def _table_state_lines(table: StateTable, k: float, memo: dict[Any, Any]) -> list[Any]:
+    """:func:`_state_lines` of a table's states, made from its arrays (the same text).
+
+    The states are not made: the elements' points are placed at the states' poses kind by
+    kind (:meth:`StateTable.placed_points`), the DOF counts and the elements' features and
+    normals come from each :class:`StateKind`. Where a number is not finite, the states
+    are made and written as dictionaries.
+    """
+    pos = table.poses[:, :3, 3]
+    quats = quaternions_from_matrices(np.ascontiguousarray(table.poses[:, :3, :3]))
+    nums = np.concatenate([table.times, pos if k == 1.0 else pos * k, quats], axis=1)
+    points = table.placed_points()
+    if k != 1.0:
+        points = points * k
+    if not (np.isfinite(nums).all() and np.isfinite(points).all()):
+        return _states_to_dicts(table, k)
+    kinds = [table.kinds[kk] for kk in table.kind.tolist()]
+    els = [e for kd in kinds for e in kd.elements]  # the kinds' records: features, normals
+    texts = rounded_texts(nums.ravel().tolist() + points.ravel().tolist())
+    try:
+        elements = _element_texts(els, texts[9 * len(kinds) :], memo)
+    except ValueError:  # a normal that is not finite
+        return _states_to_dicts(table, k)
+    out: list[Any] = []
+    j = 0
+    rows = zip(table.ids, table.frames.tolist(), table.pose_frames.tolist(),
+               table.converged.tolist(), table.same_as, kinds, strict=True)  # fmt: skip
+    for i, (sid, (a, b), pf, conv, same, kd) in enumerate(rows):
+        n, t = len(kd.elements), texts[9 * i : 9 * i + 9]
+        out.append(RawJson(_STATE_LINE.format(
+            json_str(sid), a, b, t[0], t[1], "true" if kd.singular else "false",
+            _dof_text(kd, memo), ", ".join(elements[j : j + n]), *t[2:],
+            "null" if pf < 0 else pf, "true" if conv else "false",
+            "null" if same is None else json_str(same),
+        )))  # fmt: skip
+        j += n
+    return out
+
+
+def _dof_text(s: State | StateKind, memo: dict[Any, Any]) -> str:
     """``"fig25": [...], "six": {...}`` of a state's JSON line (once per distinct counts)."""
     key = ("dof", tuple(s.fig25), *(tuple(s.six[sp]) for sp in SPACES))
     text = memo.get(key)
@@ -593,6 +904,8 @@ def _transition_lines(
     encoder, the sub-skills' numbers all at once (:func:`rounded_texts`); where one is not
     finite, the dictionaries instead.
     """
+    if isinstance(transitions, TransitionTable):
+        return _table_transition_lines(transitions, k, memo)
     nums: list[float] = []
     sizes: list[tuple[int, int, int]] = []
     for t in transitions:
@@ -623,6 +936,31 @@ def _transition_lines(
         if subs:
             line = line.replace('"subskills": []', f'"subskills": [{", ".join(subs)}]', 1)
         out.append(RawJson(line))
+    return out
+
+
+def _table_transition_lines(table: TransitionTable, k: float, memo: dict[Any, Any]) -> list[Any]:
+    """:func:`_transition_lines` of a table's transitions (the same text).
+
+    A transition's line is ``{"from": .., "to": .., "frame": ..`` and then the text of its
+    record (:attr:`TransitionTable.kinds`), made once per record from the line of its first
+    transition here; a record whose line does not start so is written transition by
+    transition.
+    """
+    out: list[Any] = []
+    for i, (w, frame) in enumerate(zip(table.which.tolist(), table.frames.tolist(), strict=True)):
+        a, b = json_str(table.ids[i]), json_str(table.ids[i + 1])
+        head = f'{{"from": {a}, "to": {b}, "frame": {frame}'
+        key = ("transition", id(table.kinds), w)
+        if key not in memo:
+            line = _transition_lines([table[i]], k, memo)[0]
+            ok = isinstance(line, RawJson) and line.startswith(head)
+            memo[key] = (str(line[len(head) :]) if ok else None, table.kinds)  # kinds kept
+        tail: str | None = memo[key][0]
+        if tail is None:
+            out.append(_transition_lines([table[i]], k, memo)[0])
+        else:
+            out.append(RawJson(head + tail))
     return out
 
 
@@ -980,6 +1318,30 @@ def _element_set(s: State) -> frozenset[tuple[str, Feature, Feature]]:
     return frozenset((e.kind, e.grasped, e.environment) for e in s.elements)
 
 
+_Visit = tuple[str, tuple[int, int], frozenset[tuple[str, Feature, Feature]]]
+_Change = tuple[str, str, int, bool, bool]
+
+
+def _visits(states: Sequence[State]) -> list[_Visit]:
+    """``(id, frames, element keys)`` of each state (a table's states are not made)."""
+    if isinstance(states, StateTable):
+        keys = [frozenset((e.kind, e.grasped, e.environment) for e in kd.elements)
+                for kd in states.kinds]  # fmt: skip
+        rows = zip(states.ids, states.frames.tolist(), states.kind.tolist(), strict=True)
+        return [(sid, (a, b), keys[kk]) for sid, (a, b), kk in rows]
+    return [(s.id, s.frames, _element_set(s)) for s in states]
+
+
+def _changes(transitions: Sequence[Transition]) -> list[_Change]:
+    """``(from, to, frame, critical, direct)`` of each transition (a table's not made)."""
+    if isinstance(transitions, TransitionTable):
+        ids, kinds = transitions.ids, transitions.kinds
+        rows = zip(transitions.which.tolist(), transitions.frames.tolist(), strict=True)
+        return [(ids[i], ids[i + 1], f, kinds[w].critical, kinds[w].direct)
+                for i, (w, f) in enumerate(rows)]  # fmt: skip
+    return [(t.from_id, t.to_id, t.frame, t.critical, t.direct) for t in transitions]
+
+
 def state_graph(task: TaskModel) -> StateGraph:
     """Return the graph of distinct contact states (same elements) and their transitions.
 
@@ -988,23 +1350,23 @@ def state_graph(task: TaskModel) -> StateGraph:
     distinct states once with its count, in order of first occurrence.
     """
     node_of: dict[frozenset[tuple[str, Feature, Feature]], str] = {}
-    visits: dict[str, list[State]] = {}
-    for s in task.states:
-        nid = node_of.setdefault(_element_set(s), s.id)
-        visits.setdefault(nid, []).append(s)
-    by_state = {s.id: node_of[_element_set(s)] for s in task.states}
-    edges: dict[tuple[str, str], list[Transition]] = {}
-    for t in task.transitions:
-        edges.setdefault((by_state[t.from_id], by_state[t.to_id]), []).append(t)
+    visits: dict[str, list[_Visit]] = {}
+    by_state: dict[str, str] = {}
+    for v in _visits(task.states):
+        nid = by_state[v[0]] = node_of.setdefault(v[2], v[0])
+        visits.setdefault(nid, []).append(v)
+    edges: dict[tuple[str, str], list[_Change]] = {}
+    for t in _changes(task.transitions):
+        edges.setdefault((by_state[t[0]], by_state[t[1]]), []).append(t)
     return StateGraph(
         states=tuple(
-            GraphState(nid, tuple(v.id for v in vs), tuple(v.frames for v in vs))
+            GraphState(nid, tuple(v[0] for v in vs), tuple(v[1] for v in vs))
             for nid, vs in visits.items()
         ),
         transitions=tuple(
             GraphTransition(
-                a, b, len(ts), tuple(t.frame for t in ts),
-                any(t.critical for t in ts), all(t.direct for t in ts),
+                a, b, len(ts), tuple(t[2] for t in ts),
+                any(t[3] for t in ts), all(t[4] for t in ts),
             )
             for (a, b), ts in edges.items()
         ),

@@ -23,7 +23,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterator, Mapping, Sequence, Set
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -665,8 +665,7 @@ def _relative_twist(x_before: FloatArray, x_after: FloatArray) -> FloatArray:
     return np.concatenate([omega, rel[:3, 3]])
 
 
-@dataclass
-class _Ctx:
+class _Ctx(NamedTuple):  # not a dataclass: no methods made at import
     before: DofResult
     after: DofResult
     before_state: ContactState | None

@@ -148,38 +148,82 @@ def parse_noise(text: str | None, unit: float) -> tuple[float, float] | None:
     return pos * unit, math.radians(deg)
 
 
-#: The progress bar appears once the work has taken this long (s): a fast run shows none
-#: and does not import tqdm.
+#: The progress bar appears once the work has taken this long (s): a fast run shows none.
 PROGRESS_DELAY = 0.5
+
+#: Least time between two drawings of the progress bar (s), as tqdm's ``mininterval``.
+PROGRESS_INTERVAL = 0.1
 
 
 def progress_bar(n: int, desc: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
-    """Return ``(progress, close)`` for a tqdm bar on stderr, or ``(None, noop)`` if short.
+    """Return ``(progress, close)`` for a progress bar on stderr, or ``(None, noop)`` if short.
 
-    The bar is made (and tqdm imported) at the first update after ``PROGRESS_DELAY``
+    The bar (:class:`ProgressBar`) is drawn from the first update after ``PROGRESS_DELAY``
     seconds, so a run that is over sooner prints nothing.
     """
     if n < PROGRESS_MIN_FRAMES:
         return None, lambda: None
-    import time
+    bar = ProgressBar(n, desc, sys.stderr, delay=PROGRESS_DELAY)
+    return bar.update, bar.close
 
-    start = time.monotonic()
-    bars: list[Any] = []
 
-    def update(done: int, total: int) -> None:
-        if not bars and time.monotonic() - start >= PROGRESS_DELAY:
-            from tqdm import tqdm
+class ProgressBar:
+    """A one-line progress bar on a text stream, redrawn in place and wiped at the end.
 
-            tqdm.monitor_interval = 0  # no monitor thread: later stages may fork (workers)
-            bars.append(tqdm(total=n, desc=desc, unit="frame", file=sys.stderr, leave=False))
-        if bars:
-            bars[0].update(done - bars[0].n)
+    Drawn as tqdm draws it: ``contacts:  47%|████▋     | 14080/29930 [00:01<00:01,
+    10558.92frame/s]``. Not tqdm itself: importing it (with the ``multiprocessing``,
+    ``email``, ``logging`` and ``importlib.metadata`` it loads) took 30 ms of CPU and
+    5.5 MB of resident memory, a fixed cost that only long demonstrations paid
+    (docs/recognition.md, "Session 7: memory").
+    """
 
-    def close() -> None:
-        if bars:
-            bars[0].close()
+    def __init__(self, total: int, desc: str, file: Any, *, delay: float = 0.0) -> None:
+        import time
 
-    return update, close
+        self.clock = time.monotonic
+        self.total, self.desc, self.file = max(1, int(total)), desc, file
+        self.start = self.clock()
+        self.delay, self.drawn_at, self.width = delay, -1.0, 0
+
+    def update(self, done: int, _total: int = 0) -> None:
+        """Show ``done`` of the frames (drawn at most every ``PROGRESS_INTERVAL`` s)."""
+        now = self.clock()
+        if now - self.start < self.delay or now - self.drawn_at < PROGRESS_INTERVAL:
+            return
+        self.drawn_at = now
+        line = self.line(min(int(done), self.total), now - self.start)
+        self.file.write("\r" + line + " " * max(0, self.width - len(line)))
+        self.file.flush()
+        self.width = len(line)
+
+    def line(self, done: int, elapsed: float) -> str:
+        """Return the bar's text after ``done`` frames and ``elapsed`` seconds."""
+        frac = done / self.total
+        cells = frac * 10
+        full = int(cells)
+        bar = "\u2588" * full
+        if full < 10:
+            bar += " \u258f\u258e\u258d\u258c\u258b\u258a\u2589"[int((cells - full) * 8)]
+        rate = done / elapsed if elapsed > 0 else 0.0
+        left = _clock((self.total - done) / rate) if rate > 0 else "?"
+        return (
+            f"{self.desc}: {frac * 100:3.0f}%|{bar:<10}| {done}/{self.total} "
+            f"[{_clock(elapsed)}<{left}, {rate:.2f}frame/s]"
+        )
+
+    def close(self) -> None:
+        """Wipe the bar (if it was drawn)."""
+        if self.width:
+            self.file.write("\r" + " " * self.width + "\r")
+            self.file.flush()
+            self.width = 0
+
+
+def _clock(seconds: float) -> str:
+    """``mm:ss`` (``h:mm:ss`` from an hour), as tqdm writes times."""
+    m, s = divmod(int(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h:d}:{m:02d}:{s:02d}" if h else f"{m:02d}:{s:02d}"
 
 
 def report(rec: Recognition, written: dict[str, Path], *, as_json: bool) -> None:

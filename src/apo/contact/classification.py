@@ -43,8 +43,8 @@ def _classify(
     index) of G and of E.
     """
     PG, PE = g.pieces, e.pieces
-    fa_k, fa_i = PG.kind[pg].copy(), PG.index[pg].copy()
-    fb_k, fb_i = PE.kind[pe].copy(), PE.index[pe].copy()
+    fa_k, fa_i = PG.kind[pg].copy(), PG.number[pg].copy()
+    fb_k, fb_i = PE.kind[pe].copy(), PE.number[pe].copy()
     kind = _KIND_TABLE[fa_k, fb_k]
     m = (kind < 0) & (gkind == 0)
     fa_k[m], fa_i[m] = 0, gcode[m]

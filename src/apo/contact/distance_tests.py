@@ -7,7 +7,7 @@ pairs of edges within the threshold, and every touching (G feature, E feature) p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -85,8 +85,7 @@ def _point_triangle_distance(
     return _norm(p - q)
 
 
-@dataclass
-class _Near:
+class _Near(NamedTuple):  # not a dataclass: no methods made at import
     """Pairs (query point i, feature j, distance) within the threshold, per feature kind."""
 
     v: tuple[IntArray, IntArray, FloatArray]
@@ -197,8 +196,7 @@ def _near_features_naive(md: _ModelData, pts: FloatArray, d: float) -> _Near:
     return _Near(vv, ee, ff)
 
 
-@dataclass
-class _NearF:
+class _NearF(NamedTuple):
     """Pairs (frame, query point i, feature j, distance) within the threshold, per kind."""
 
     v: tuple[IntArray, IntArray, IntArray, FloatArray]

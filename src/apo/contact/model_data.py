@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -26,8 +25,7 @@ if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
 
-@dataclass(frozen=True)
-class _Cone:
+class _Cone(NamedTuple):  # not a dataclass: no methods made at import
     """A convex piece of the local solid at a feature: its refined feature and tangent cone.
 
     The cone is ``span(lin) + cone(rays)`` in the model frame (unit vectors).
@@ -39,17 +37,16 @@ class _Cone:
     normals: FloatArray  # outward unit normals of the piece's faces
 
 
-@dataclass(frozen=True)
-class _Pieces:
+class _Pieces(NamedTuple):
     """Convex pieces of a model's local solids as flat arrays, for tests vectorised over pieces.
 
-    Piece ``p`` has refined feature ``(kind[p], index[p])`` (kind codes v 0, e 1, f 2), and its
+    Piece ``p`` has refined feature ``(kind[p], number[p])`` (kind codes v 0, e 1, f 2), and its
     lineality rows, rays and face normals (model frame) are the rows ``ptr[p] : ptr[p] + n[p]``
     of ``lin``, ``rays`` and ``normals``.
     """
 
     kind: IntArray
-    index: IntArray
+    number: IntArray  # the feature's index (not ``index``: a tuple method)
     nlin: IntArray
     lin_ptr: IntArray
     lin: FloatArray
@@ -84,7 +81,7 @@ class _Pieces:
         cat = np.concatenate
         return _Pieces(
             cat([self.kind, kind]),
-            cat([self.index, index]),
+            cat([self.number, index]),
             cat([self.nlin, parts[0]]),
             cat([self.lin_ptr, parts[1]]),
             cat([self.lin, parts[2]]),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -282,8 +282,7 @@ def _piece_pairs(
     return gs[rep] + o // ec[rep], es[rep] + o % ec[rep], rep
 
 
-@dataclass(frozen=True)
-class _Work:
+class _Work(NamedTuple):  # not a dataclass: no methods made at import
     """The candidate pairs of convex pieces of a block of frames (stages up to the cones).
 
     ``active`` are the frames (indices into the block) that passed the broad phase, ``R``,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
@@ -24,7 +23,16 @@ from apo.recognition.types import (
     StateKey,
 )
 from apo.spatial import invert_pose
-from apo.task import Element, Rejected, State, SubSkill, Transition, state_letters
+from apo.task import (
+    Element,
+    Rejected,
+    StateKind,
+    StateTable,
+    SubSkill,
+    Transition,
+    TransitionTable,
+    state_letters,
+)
 from apo.transitions import analyze_transition
 
 if TYPE_CHECKING:
@@ -35,6 +43,7 @@ __all__ = [
     "build_transitions",
     "element_record",
     "rejected_runs",
+    "state_kind",
     "transition_record",
 ]
 
@@ -195,90 +204,62 @@ def build_states(
     observed: IntArray,
     corrected: Corrected,
     candidates: Sequence[CandidateState | None],
-) -> tuple[list[tuple[int, int]], list[str], list[State]]:
+) -> tuple[list[tuple[int, int]], list[str], StateTable]:
     """Make runs of frames with the same chosen state the task's states A, B, ...
 
     ``path`` is the chosen candidate of each frame, ``observed`` the observed one (up to
     the identification of candidates with the same closure). A state seen again gets a new
-    letter and ``same_as``. Returns the runs ``(first, last)``, their ids and the states.
+    letter and ``same_as``. Returns the runs ``(first, last)``, their ids and the states, as
+    a :class:`apo.task.StateTable`: a row of arrays per state, and per candidate one
+    :func:`state_kind` (its elements placed at a state's pose when the state is read).
     """
     runs = run_bounds(path)
     ids = state_letters(len(runs))
+    n = len(runs)
+    poses = np.empty((n, 4, 4))
+    pose_frames = np.empty(n, dtype=np.int64)
+    converged = np.empty(n, dtype=bool)
+    kind = np.empty(n, dtype=np.int64)
+    kinds: list[StateKind] = []
+    kind_of: dict[int, int] = {}  # candidate -> its index in kinds
     first_id: dict[int, str] = {}
-    states: list[State] = []
-    placed: dict[int, _Placed] = {}  # per candidate: its element records, once
-    for (a, b), sid in zip(runs, ids, strict=True):
+    same_as: list[str | None] = []
+    for i, ((a, b), sid) in enumerate(zip(runs, ids, strict=True)):
         k = int(path[a])
         cand = analysed_at(candidates, k)
-        X_s, frame, converged = _state_pose(a, b, k, observed, corrected, cand)
-        if k not in placed:
-            placed[k] = _Placed(cand)
-        pk = placed[k]
-        X_EG, elements = pk.at(X_s)
-        states.append(
-            State(
-                id=sid,
-                frames=(a, b),
-                times=(float(times[a]), float(times[b])),
-                singular=pk.singular,
-                fig25=pk.fig25,
-                six=pk.six,
-                elements=elements,
-                X_EG=X_EG,
-                pose_frame=frame,
-                pose_converged=converged,
-                same_as=first_id.get(k),
-            )
-        )
+        poses[i], pose_frames[i], converged[i] = _state_pose(a, b, k, observed, corrected, cand)
+        if k not in kind_of:
+            kind_of[k] = len(kinds)
+            kinds.append(state_kind(cand))
+        kind[i] = kind_of[k]
+        same_as.append(first_id.get(k))
         first_id.setdefault(k, sid)
-    return runs, ids, states
+    bounds = np.array(runs, dtype=np.int64).reshape(-1, 2)
+    t = np.asarray(times, dtype=np.float64)
+    table = StateTable(ids, bounds, t[bounds], poses, kind, kinds, pose_frames, converged, same_as)
+    return runs, ids, table
 
 
-class _Placed:
-    """A candidate's element records, made once, placed at the pose of each of its runs.
+def state_kind(cand: CandidateState) -> StateKind:
+    """Return what every state of the candidate ``cand`` shares (:class:`apo.task.StateKind`).
 
     The candidate's elements were found at its representative pose (``cand.X_EG``, shared by
     every run of the same contact state), the state's pose is the best frame of the run: in
     a sliding state the two lie far apart (a block slid 70 mm along a wall). A point on a
     vertex or edge of the grasped object (kinds VF, VE, VV, EE) moves with it; a point on a
-    vertex of the environment (FV, EV) stays. So ``task.json``'s points hold at its poses.
-    A demonstration repeated has thousands of runs of a few candidates: the records, the
-    DOF numbers (``fig25``, ``six``: the same objects in every run's state) and the inverse
-    of the representative pose are made once per candidate, not per run.
+    vertex of the environment (FV, EV) stays (:meth:`apo.task.StateKind.points_at`). So
+    ``task.json``'s points hold at its poses. The records, the DOF numbers (``fig25``,
+    ``six``: the same objects in every run's state) and the inverse of the representative
+    pose are made once per candidate, not per run.
     """
-
-    def __init__(self, cand: CandidateState) -> None:
-        self.inv = invert_pose(cand.X_EG)
-        self.seen: dict[bytes, tuple[FloatArray, tuple[Element, ...]]] = {}
-        self.records = [element_record(e) for e in cand.state.elements]
-        # the DOF numbers, one object shared by every run of the candidate
-        dof_r = cand.dof
-        self.singular = bool(dof_r.singular)
-        self.fig25 = cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25))
-        self.six = {sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")}
-
-    def at(self, X_s: FloatArray) -> tuple[FloatArray, tuple[Element, ...]]:
-        """Return the pose ``X_s`` (a copy) and the elements with their points there.
-
-        A pose met again bit for bit (a demonstration repeated) gets the same two objects
-        (the memo lives as long as this object: while the states are made).
-        """
-        key = X_s.tobytes()
-        hit = self.seen.get(key)
-        if hit is None:
-            hit = self.seen[key] = (np.asarray(X_s, dtype=np.float64).copy(), self._place(X_s))
-        return hit
-
-    def _place(self, X_s: FloatArray) -> tuple[Element, ...]:
-        """Return the elements with their points where they are at the pose ``X_s``."""
-        T = X_s @ self.inv
-        out = []
-        for r in self.records:
-            if r.kind not in ("FV", "EV"):
-                r = Element(r.kind, r.grasped, r.environment, T[:3, :3] @ r.point + T[:3, 3],
-                            r.normals)  # fmt: skip
-            out.append(r)
-        return tuple(out)
+    dof_r = cand.dof
+    return StateKind(
+        singular=bool(dof_r.singular),
+        fig25=cast("tuple[int, int, int, int, int, int, int, int]", tuple(dof_r.fig25)),
+        six={sp: cast("Six", tuple(dof_r.six(sp))) for sp in ("translation", "rotation")},
+        elements=tuple(element_record(e) for e in cand.state.elements),
+        inv_ref=invert_pose(cand.X_EG),
+    )
 
 
 def _state_pose(
@@ -306,21 +287,24 @@ def build_transitions(
     path: IntArray,
     candidates: Sequence[CandidateState | None],
     feasible: BoolArray,
-) -> list[Transition]:
-    """Return the transitions between consecutive runs (each pair of candidates analysed once)."""
+) -> TransitionTable:
+    """Return the transitions between consecutive runs (each pair of candidates analysed once).
+
+    A :class:`apo.task.TransitionTable`: each transition is the record of its pair of
+    candidates with its own states and frame.
+    """
     run_cands = [int(path[a]) for a, _b in runs]
-    analysed: dict[tuple[int, int], Transition] = {}
-    out = []
+    analysed: dict[tuple[int, int], int] = {}
+    kinds: list[Transition] = []
+    which = np.empty(max(len(runs) - 1, 0), dtype=np.int64)
     for i in range(len(runs) - 1):
         pair = (run_cands[i], run_cands[i + 1])
         if pair not in analysed:
-            analysed[pair] = transition_record(
-                analysed_at(candidates, pair[0]),
-                analysed_at(candidates, pair[1]),
-                ids[i],
-                ids[i + 1],
-                runs[i + 1][0],
-                bool(feasible[pair]),
-            )
-        out.append(replace(analysed[pair], from_id=ids[i], to_id=ids[i + 1], frame=runs[i + 1][0]))
-    return out
+            analysed[pair] = len(kinds)
+            kinds.append(transition_record(
+                analysed_at(candidates, pair[0]), analysed_at(candidates, pair[1]),
+                ids[i], ids[i + 1], runs[i + 1][0], bool(feasible[pair]),
+            ))  # fmt: skip
+        which[i] = analysed[pair]
+    frames = np.array([a for a, _b in runs[1:]], dtype=np.int64)
+    return TransitionTable(ids if runs else [], frames, which, kinds)

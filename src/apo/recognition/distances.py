@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 import numpy.typing as npt
@@ -14,8 +15,15 @@ from apo.geometry import (
     segment_segment_closest,
 )
 from apo.recognition.types import ElementKey, FloatArray
+from apo.workers import run_parts, shared_zeros, workers_for
 
-__all__ = ["DistanceCache", "FixedDistances", "StreamedDistances", "element_distances"]
+__all__ = [
+    "DistanceCache",
+    "FixedDistances",
+    "StreamedDistances",
+    "element_distances",
+    "split_distances",
+]
 
 
 def element_distances(
@@ -83,6 +91,42 @@ def element_distances(
     return out
 
 
+#: Least ``frames x keys`` whose distances :func:`split_distances` splits over processes: a
+#: fork costs 2-5 ms, the distances of one key some 0.15-0.2 us a frame (about 10 ms here).
+SPLIT_MIN_KEY_FRAMES = 50_000
+
+
+def split_distances(
+    grasped: Polyhedron,
+    environment: Polyhedron,
+    X: FloatArray,
+    keys: Sequence[ElementKey],
+    jobs: int | None = 1,
+) -> FloatArray:
+    """:func:`element_distances`, the keys dealt over ``jobs`` processes (:mod:`apo.workers`).
+
+    Each key's column is computed on its own from the same poses (the loop of
+    :func:`element_distances`), so the columns are the same bit for bit whichever process
+    computes them; key ``j`` goes to process ``j % k``, and each writes its columns into a
+    shared array (nothing is sent back). ``jobs``: None for auto (from 768 frames and
+    ``SPLIT_MIN_KEY_FRAMES``), 1 for this process only.
+    """
+    k = workers_for(jobs, len(X))
+    if jobs is None and len(X) * len(keys) < SPLIT_MIN_KEY_FRAMES:
+        k = 1
+    k = min(k, len(keys))
+    if k <= 1:
+        return element_distances(grasped, environment, X, keys)
+    out = shared_zeros((len(X), len(keys)), np.float64, True)
+    keys = list(keys)
+
+    def part(i: int) -> None:
+        out[:, i::k] = element_distances(grasped, environment, X, keys[i::k])
+
+    run_parts([partial(part, i) for i in range(k)])
+    return out
+
+
 class DistanceCache:
     """Distances (in thresholds) of element keys at every observed pose, computed once."""
 
@@ -115,14 +159,21 @@ class StreamedDistances:
     the working memory is ``span x elements`` whatever the length of the demonstration.
     A frame's distance is the same value whichever keys are asked for with it (each key is
     computed on its own, over the same span): :func:`apo.recognition.segmentation.segment`
-    computes again the distances the first pass computed and dropped.
+    computes again the distances the first pass computed and dropped. ``jobs``: processes a
+    span's keys are split over (:func:`split_distances`; the same numbers whatever ``jobs``).
     """
 
     def __init__(
-        self, grasped: Polyhedron, environment: Polyhedron, X: FloatArray, theta: float
+        self,
+        grasped: Polyhedron,
+        environment: Polyhedron,
+        X: FloatArray,
+        theta: float,
+        jobs: int | None = 1,
     ) -> None:
         self.args = (grasped, environment, X)
         self.theta = theta
+        self.jobs = jobs
         self.at: tuple[int, int] = (0, 0)
         self.cols: dict[ElementKey, FloatArray] = {}
 
@@ -146,7 +197,7 @@ class StreamedDistances:
         missing = [k for k in dict.fromkeys(keys) if k not in self.cols]
         if missing:
             G, E, X = self.args
-            d = element_distances(G, E, X[s0:s1], missing)
+            d = split_distances(G, E, X[s0:s1], missing, self.jobs)
             d /= self.theta
             for j, k in enumerate(missing):
                 self.cols[k] = d[:, j]

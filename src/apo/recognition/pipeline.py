@@ -54,7 +54,7 @@ from apo.recognition.types import (
     Scene,
     SegmentationCosts,
 )
-from apo.task import UNITS, ModelRef, TaskModel
+from apo.task import UNITS, ModelRef, TaskModel, state_spans
 
 __all__ = ["recognize", "recognize_frames"]
 
@@ -265,7 +265,7 @@ def _recognise_once(
     scene = make_scene(grasped, environment, X, threshold, costs, est, floor_share)
     observed = observe(scene, memoize=memoize, progress=progress, jobs=jobs)
     tm["contacts"] = time.perf_counter() - t0
-    dists = StreamedDistances(grasped, environment, X, scene.unit)
+    dists = StreamedDistances(grasped, environment, X, scene.unit, jobs=jobs)
     path0, own, seen = _timed(tm, "segmentation", first_pass, scene, observed, dists)
     an = _timed(tm, "analysis", analyse_needed, scene, observed, own, path0)
     seg = _timed(tm, "segmentation", segment, scene, an, dists, observed, seen)
@@ -380,8 +380,8 @@ def build_task(
         units=units,
         grasped=g_ref,
         environment=e_ref,
-        states=tuple(states),
-        transitions=tuple(transitions),
+        states=states,
+        transitions=transitions,
         rejected=tuple(rejected),
         n_frames=scene.n,
         source=source,
@@ -402,7 +402,7 @@ def _result(
     """Gather the per-frame diagnostics."""
     path, obs_c = seg.path, seg.observed
     Xc, res_before, res_after, conv = corrected
-    state_of_frame = [s.id for s in task.states for _ in range(s.frames[0], s.frames[1] + 1)]
+    state_of_frame = [s for s, a, b in state_spans(task.states) for _ in range(a, b + 1)]
     return Recognition(
         task=task,
         state_of_frame=state_of_frame,

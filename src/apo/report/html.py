@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from apo.arrays import unique
 from apo.errors import ApoError
 from apo.typing import BoolArray, FloatArray
 
@@ -143,7 +144,7 @@ def pack_array(a: npt.ArrayLike, dtype: str) -> dict[str, Any]:
     return {
         "dtype": dtype,
         "shape": list(arr.shape),
-        "b64": base64.b64encode(arr.tobytes()).decode("ascii"),
+        "b64": base64.b64encode(arr.data).decode("ascii"),  # the buffer itself: no copy
     }
 
 
@@ -192,7 +193,7 @@ def replay_indices(state_index: npt.ArrayLike, max_frames: int = MAX_REPLAY_FRAM
     ends = np.concatenate([[0, n - 1], change, change + 1])
     budget = max(max_frames - ends.size, 2)
     regular = np.linspace(0, n - 1, budget).round().astype(np.int64)
-    return np.unique(np.concatenate([regular, ends]))
+    return unique(np.concatenate([regular, ends]))  # not np.unique: no numpy.ma import
 
 
 def _mesh_data(poly: Polyhedron, scale: float) -> dict[str, Any]:
@@ -227,7 +228,7 @@ def _frames_data(track: FrameTrack, state_ids: list[str], scale: float) -> dict[
     }
     for key, X in (("observed", track.X_observed), ("corrected", track.X_corrected)):
         if X is not None:
-            out[key] = pack_array(poses_to_rows(np.asarray(X)[keep], scale), "f4")
+            out[key] = pack_array(_kept_pose_rows(np.asarray(X), keep, scale), "f4")
     for key, v in (
         ("residual_before", track.residual_before),
         ("residual_after", track.residual_after),
@@ -237,6 +238,22 @@ def _frames_data(track: FrameTrack, state_ids: list[str], scale: float) -> dict[
     for key, b in (("converged", track.converged), ("repaired", track.repaired)):
         if b is not None:
             out[key] = pack_array(np.asarray(b, dtype=bool)[keep], "u1")
+    return out
+
+
+#: Kept frames whose pose rows are made at a time (:func:`_kept_pose_rows`).
+POSE_ROWS_BLOCK = 2048
+
+
+def _kept_pose_rows(X: FloatArray, keep: Any, scale: float) -> npt.NDArray[np.float32]:
+    """``poses_to_rows(X[keep], scale)`` as little-endian float32, ``POSE_ROWS_BLOCK`` at a time.
+
+    The same numbers (each row is its pose's alone); the working arrays of a block, not of
+    every kept frame (a long demonstration keeps two frames a state, 12,000 at 6,000 states).
+    """
+    out = np.empty((len(keep), 7), dtype=np.dtype("f4").newbyteorder("<"))
+    for a in range(0, len(keep), POSE_ROWS_BLOCK):
+        out[a : a + POSE_ROWS_BLOCK] = poses_to_rows(X[keep[a : a + POSE_ROWS_BLOCK]], scale)
     return out
 
 

@@ -276,7 +276,7 @@ def recognition_report(
     milliseconds (``docs/report.md``, ``benchmarks/report.py``).
     """
     from apo.report.html import report_data
-    from apo.task import task_to_dict
+    from apo.task import state_spans, task_to_dict
 
     if doc is None:
         doc = task_to_dict(rec.task)
@@ -286,5 +286,5 @@ def recognition_report(
         environment=environment,
         frames=frames_from_recognition(rec, X_observed),
         inputs=inputs_summary(doc, files),
-        state_ids=None if "states" in doc else [s.id for s in rec.task.states],
+        state_ids=None if "states" in doc else [s for s, _a, _b in state_spans(rec.task.states)],
     )

@@ -255,8 +255,8 @@ class TaskJson:
     memory whole.
     """
 
-    #: Bytes read at a time.
-    CHUNK = 1 << 20
+    #: Bytes read at a time (two chunks are held at once while the report is written).
+    CHUNK = 1 << 18
 
     def __init__(self, path: Path, head: Mapping[str, Any]) -> None:
         self.path = Path(path)
