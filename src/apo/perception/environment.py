@@ -101,6 +101,7 @@ def refine_environment(
     *,
     dilation: int = 3,
     max_pixels: int = 20000,
+    outline: bool = True,
 ) -> FloatArray:
     """Refine the environment's pose by the projective ICP on its surface depth.
 
@@ -152,6 +153,6 @@ def refine_environment(
     # of the mean depth, at least 1 mm (calibration and model errors).
     res = projective_icp(
         depth, cam, faces, X_CE, mask=mask, sigma=sigma, floor=0.001, start_scale=0.004,
-        max_pixels=max_pixels,
+        max_pixels=max_pixels, outline=outline,
     )  # fmt: skip
     return np.asarray(res.X_CM, dtype=np.float64)

@@ -34,7 +34,16 @@ Each iteration (see :func:`projective_icp`):
    leave directions unconstrained (one face in view; the top of a part hidden by a hand):
    measured on a square peg seen from 22 deg, three directions rested on the silhouette.
    A contour row weighs ``(sigma_depth / sigma_lateral)^2`` surface rows (at most
-   ``CONTOUR_WEIGHT_MAX``), ``sigma_lateral`` half a pixel at the object's distance;
+   ``CONTOUR_WEIGHT_MAX``), ``sigma_lateral`` half a pixel at the object's distance.
+   These rows are one-sided: a pose whose outline passes between the same pixel centres
+   as the observed one has none, so along a direction only the outline constrains, the
+   pose stops anywhere in a band up to a pixel wide (measured: the environment of a
+   square-peg variant seen at 0.81 m, 1 px = 2.1 mm, ended 0.9 mm off or 0.4 mm the other
+   way depending on the start). With ``outline``, **outline rows** are two-sided: each
+   pair of 4-neighbours where the observed surface ends (an object pixel and one seen
+   farther by more than a surface steps between pixels) gives the edge half-way between
+   them, against the model's nearest silhouette edge: a residual on both sides of the
+   outline, whose minimum is the middle of that band (:func:`_outline`);
 4. optional **constraint rows** (``constraint``), e.g. non-penetration of the other object
    (:func:`apo.perception.register.register_projective`);
    **Ownership** with ``clutter`` (the mask is not the object's own, e.g. depth alone: a
@@ -71,6 +80,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -99,6 +109,15 @@ where it was 2 to ``CYCLE_LONGEST`` steps before closes a limit cycle (see
 
 CYCLE_LONGEST = 4
 """The longest limit cycle (steps) :func:`projective_icp` detects."""
+
+OUTLINE_REACH = 2.0
+"""Pixels: an observed outline pair is matched with a silhouette edge of the model this near
+(:func:`_outline`)."""
+
+OUTLINE_SLOPE = 4.0
+"""Pixels' widths: the most a surface seen at up to about 75 deg (``max_angle``; ``tan 75 deg``
+is 3.7) steps in depth between two neighbouring pixels. A larger step, beyond the depth
+noise's bound too, is an outline (:func:`_outline_pairs`)."""
 
 
 @dataclass(frozen=True)
@@ -228,6 +247,21 @@ class _Window:
     v0: int = 0  # a crop's first row and column in the window (:func:`_cropped`)
     u0: int = 0
     shared: npt.NDArray[np.bool_] | None = None  # object pixels within the occluder's noise
+    outline: _Pairs | None = None  # the observed outline's pixel pairs (:func:`_outline_pairs`)
+
+
+class _Pairs(NamedTuple):
+    """The observed outline: 4-neighbours ``p``, an object pixel, and ``q``, seen past it.
+
+    Whole-window (subsampled) pixel coordinates; the edge is taken half-way between them.
+    """
+
+    vp: npt.NDArray[np.intp]
+    up: npt.NDArray[np.intp]
+    vq: npt.NDArray[np.intp]
+    uq: npt.NDArray[np.intp]
+    depth: FloatArray  # the observed depth at p (the surface that ends there)
+    free: FloatArray  # the depth noise's bound at p
 
 
 def _bounds(image: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
@@ -264,7 +298,7 @@ def _cropped(
 def _window(
     depth: npt.ArrayLike, camera: Camera, mask: npt.ArrayLike | None,
     occluder: npt.ArrayLike | None, sigma: npt.ArrayLike | None, floor: float, k: float,
-    max_pixels: int, shared: npt.ArrayLike | None = None,
+    max_pixels: int, shared: npt.ArrayLike | None = None, outline: bool = False,
 ) -> _Window:  # fmt: skip
     full = np.asarray(depth)
     ok = np.isfinite(full) & (full > 0)
@@ -291,7 +325,31 @@ def _window(
     box = _bounds(ok)
     depth_sigma = float(np.median(scale[ok])) / TUKEY_K if box[1] > box[0] else None
     near = None if near is None else near[::step, ::step] & ~ok
-    return _Window(cam, d, ok, P, rays, scale, sig, free, occ, box, depth_sigma, shared=near)
+    pairs = _outline_pairs(d, ok, cam, free) if outline else None
+    return _Window(
+        cam, d, ok, P, rays, scale, sig, free, occ, box, depth_sigma, shared=near, outline=pairs
+    )
+
+
+def _outline_pairs(
+    d: FloatArray, ok: npt.NDArray[np.bool_], camera: Camera, free: FloatArray
+) -> _Pairs:
+    """Return the observed outline's pairs of 4-neighbours (see :class:`_Pairs`).
+
+    ``p`` is an object pixel (``ok``), ``q`` has a depth farther than ``p``'s by more than
+    the noise's bound ``free`` and ``OUTLINE_SLOPE`` pixels' widths (more than a surface
+    seen at up to 75 deg steps between two pixels): the surface at ``p`` ends between them.
+    """
+    h, w = d.shape
+    out: list[tuple[npt.NDArray[np.intp], ...]] = []
+    for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        v, u = np.nonzero(ok[max(0, -dv) : h - max(0, dv), max(0, -du) : w - max(0, du)])
+        v, u = v + max(0, -dv), u + max(0, -du)
+        dp, dq = d[v, u], d[v + dv, u + du]
+        edge = dq - dp > free[v, u] + OUTLINE_SLOPE * dp / camera.fx
+        out.append((v[edge], u[edge], v[edge] + dv, u[edge] + du))
+    vp, up, vq, uq = (np.concatenate([o[k] for o in out]) for k in range(4))
+    return _Pairs(vp, up, vq, uq, d[vp, up], free[vp, up])
 
 
 _Rows = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
@@ -318,6 +376,7 @@ def projective_icp(
     constraint: Callable[[FloatArray], tuple[FloatArray, FloatArray, FloatArray]] | None = None,
     clutter: bool = False,
     shared: npt.ArrayLike | None = None,
+    outline: bool = False,
     extrapolate: bool = False,
 ) -> ProjectiveResult:
     """Projective point-to-plane ICP of a model to the object's pixels of a depth image.
@@ -377,6 +436,10 @@ def projective_icp(
         environment: only those whose noise took them nearer the camera pass the cut, so
         the cut alone biases the part's pose). Each gives a surface row where the model
         renders the part at the pose, in front of the occluder, and no contour row.
+    outline : bool, optional
+        Add the two-sided outline rows (with ``silhouette``, not with ``clutter``; see the
+        module notes and :func:`_outline`): the observed edge half-way between an object
+        pixel and its neighbour seen past it, against the model's silhouette edge.
     extrapolate : bool, optional
         Also stop once the steps left, estimated from the last two at the final scale as a
         geometric series, sum to less than ``tolerance`` (:func:`_settled`): a step sooner
@@ -387,7 +450,9 @@ def projective_icp(
     ProjectiveResult
     """
     X = np.asarray(X_CM_init, dtype=np.float64).copy()
-    win = _window(depth, camera, mask, occluder, sigma, floor, tukey_k, max_pixels, shared)
+    win = _window(
+        depth, camera, mask, occluder, sigma, floor, tukey_k, max_pixels, shared, outline
+    )  # fmt: skip
     n_obs = int(np.count_nonzero(win.mask))
     radius = float(np.linalg.norm(model.vertices - model.vertices.mean(0), axis=1).max())
     final_scale = float(win.scale[win.mask].max(initial=floor))
@@ -527,6 +592,8 @@ def _rows(
             wrong |= win.mask & ~on  # an object pixel where the model renders nothing
         if wrong.any():
             out.append(_contour(X, model, win, wrong, float(np.median(rendered[on]))))
+        if win.outline is not None and len(win.outline.vp) and not clutter:
+            out.append(_outline(X, model, win, rendered, cos_min))
     x, n, r, scale, weight, g = (np.concatenate([o[k] for o in out]) for k in range(6))
     return x, n, r, scale, weight, g
 
@@ -598,8 +665,136 @@ def _contour(
     return x, n_M, r, win.scale[v, u], np.full(len(r), w), np.zeros((len(r), 3))
 
 
+def _outline(
+    X: FloatArray, model: FacePlanes, win: _Window, rendered: npt.NDArray[np.float32],
+    cos_min: float,
+) -> _Rows:  # fmt: skip
+    """Outline rows: the observed edge half-way between each pair (:class:`_Pairs`).
+
+    Each pair is matched with the nearest silhouette edge of the model in the image
+    (:func:`_edges_in_image`; within ``OUTLINE_REACH`` pixels, its outward side the way the
+    pair steps from the object to what is seen past it). Kept when ``p`` is observed on
+    the model's surface (:func:`_on_surface`) and neither pixel renders the model nearer
+    than the edge (a face would hide it). The residual is the signed lateral distance
+    (metres, at the edge's depth) from the edge to the ray through the pair's midpoint,
+    positive outside the model. Two-sided: every pair gives a row whether or not the
+    rendering agrees about its two pixels, so the minimum is the pose whose outline passes
+    half-way between the pairs; the contour rows alone are zero over a band of poses up to
+    a pixel wide (those that put the outline between the same pixel centres), and the
+    pose then stops anywhere in it. Weight ``(sigma_depth / sigma_q)^2`` (at most
+    ``CONTOUR_WEIGHT_MAX``), ``sigma_q`` the spread of a uniform error over a pixel.
+    """
+    pr, cam = win.outline, win.camera
+    edges = _edges_in_image(X, model, cam, cos_min)
+    if pr is None or edges is None:
+        return _NO_ROWS
+    A, B, a2, ab, out2 = edges
+    mu = np.asarray(0.5 * (pr.up + pr.uq), dtype=np.float64)
+    mv = np.asarray(0.5 * (pr.vp + pr.vq), dtype=np.float64)
+    k, sk = _nearest_edge(mu, mv, a2, ab)
+    gap = np.hypot(mu - a2[k, 0] - sk * ab[k, 0], mv - a2[k, 1] - sk * ab[k, 1])
+    outward = out2[k, 0] * (pr.uq - pr.up) + out2[k, 1] * (pr.vq - pr.vp)
+    t3 = sk * A[k, 2] / np.maximum((1 - sk) * B[k, 2] + sk * A[k, 2], 1e-12)  # perspective
+    E = A[k] + t3[:, None] * (B[k] - A[k])
+    nearer = np.minimum(_rendered_at(rendered, win, pr.vp, pr.up, np.inf),
+                        _rendered_at(rendered, win, pr.vq, pr.uq, np.inf))  # fmt: skip
+    width = OUTLINE_SLOPE * E[:, 2] / cam.fx * (gap + 1.0)  # a surface's steps over the gap
+    ok = (gap <= OUTLINE_REACH) & (outward > 0.5) & (nearer >= E[:, 2] - pr.free - width)
+    ok &= _on_surface(rendered, win, pr)
+    if not ok.any():
+        return _NO_ROWS
+    k, E = k[ok], E[ok]
+    Pm = np.column_stack(((mu[ok] - cam.cx) / cam.fx, (mv[ok] - cam.cy) / cam.fy, np.ones(len(k))))
+    Pm *= E[:, 2:3]  # the midpoint's ray at the edge's depth
+    m = _cross(B[k] - A[k], E)  # the normal of the plane through the camera centre and edge
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+    # Outward as the edge's image normal: the image motion of E moved along m.
+    du = cam.fx * (m[:, 0] - E[:, 0] * m[:, 2] / E[:, 2])
+    dv = cam.fy * (m[:, 1] - E[:, 1] * m[:, 2] / E[:, 2])
+    m *= np.where(du * out2[k, 0] + dv * out2[k, 1] < 0, -1.0, 1.0)[:, None]
+    R, t = X[:3, :3], X[:3, 3]
+    n_M = m @ R
+    x = (Pm - t) @ R
+    r = np.einsum("ij,ij->i", m, Pm - E)
+    lateral = float(np.median(E[:, 2])) / cam.fx  # a pixel's width, metres
+    quant = lateral / np.sqrt(12.0)
+    depth_sigma = quant if win.depth_sigma is None else win.depth_sigma
+    w = min(CONTOUR_WEIGHT_MAX, (depth_sigma / quant) ** 2)
+    scale = np.full(len(r), (OUTLINE_REACH + 0.5) * lateral)
+    return x, n_M, r, scale, np.full(len(r), w), np.zeros((len(r), 3))
+
+
+_NO_ROWS: _Rows = (np.zeros((0, 3)), np.zeros((0, 3)), *np.zeros((3, 0)), np.zeros((0, 3)))
+
+
+def _edges_in_image(
+    X: FloatArray, model: FacePlanes, cam: Camera, cos_min: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None:
+    """Return the silhouette edges at ``X`` whose face in view is not seen at a grazing angle.
+
+    Returns their ends ``A``, ``B`` (camera frame), ``A``'s image point, the image vector to
+    ``B``'s and the unit image normal away from the face in view (outward); None if none.
+    Past a face seen at more than ``max_angle`` the observed depth steps like an outline
+    from pixel to pixel, so its own edge is left to the contour rows.
+    """
+    R, t = X[:3, :3], X[:3, 3]
+    sil = model.silhouette_edges(X)
+    eye = -R.T @ t  # the camera centre, model frame
+    front = model.normals @ eye - model.offsets > 0
+    f0, f1 = model.edge_faces[sil, 0], model.edge_faces[sil, 1]
+    f = np.where(front[f0] | (f1 < 0), f0, f1)  # the face turned to the camera
+    ray = model.vertices[model.edges[sil]].mean(axis=1) - eye
+    seen = np.abs(np.einsum("ij,ij->i", model.normals[f], ray))
+    keep = seen >= cos_min * np.linalg.norm(ray, axis=1)
+    sil, f = sil[keep], f[keep]
+    third = model.triangles[f].sum(axis=1) - model.edges[sil].sum(axis=1)
+    P = transform_points(X, model.vertices[np.concatenate([model.edges[sil].T.ravel(), third])])
+    if len(sil) == 0 or np.any(P[:, 2] <= 0):
+        return None
+    uv = np.column_stack((cam.fx * P[:, 0] / P[:, 2] + cam.cx, cam.fy * P[:, 1] / P[:, 2] + cam.cy))
+    n = len(sil)
+    a2, ab, c2 = uv[:n], uv[n : 2 * n] - uv[:n], uv[2 * n :]
+    out2 = np.column_stack((-ab[:, 1], ab[:, 0]))
+    out2 /= np.maximum(np.linalg.norm(out2, axis=1, keepdims=True), 1e-12)
+    out2 *= np.where(np.einsum("ij,ij->i", out2, c2 - a2) > 0, -1.0, 1.0)[:, None]
+    return P[:n], P[n : 2 * n], a2, ab, out2
+
+
+def _rendered_at(
+    rendered: npt.NDArray[np.float32], win: _Window, v: npt.NDArray[np.intp],
+    u: npt.NDArray[np.intp], none: float = 0.0,
+) -> FloatArray:  # fmt: skip
+    """Return the (cropped) rendering's depth at whole-window pixels; ``none`` where none."""
+    h, w = rendered.shape
+    vv, uu = v - win.v0, u - win.u0
+    inside = (vv >= 0) & (vv < h) & (uu >= 0) & (uu < w)
+    d = np.where(inside, rendered[np.clip(vv, 0, h - 1), np.clip(uu, 0, w - 1)], 0.0)
+    return np.where(d > 0, d, none)
+
+
+def _on_surface(
+    rendered: npt.NDArray[np.float32], win: _Window, pr: _Pairs
+) -> npt.NDArray[np.bool_]:
+    """Whether each pair's ``p`` is observed on the model's surface, within the noise's bound.
+
+    Where the model renders ``p``, its depth there; else the surface continued linearly
+    from the two pixels behind ``p`` (the model's edge passes between them and ``p``).
+    Something else in view that ends near the model's outline (a part in a slot, flush with
+    its rim; a hand) is not the model's outline.
+    """
+    dv, du = pr.vq - pr.vp, pr.uq - pr.up
+    at = _rendered_at(rendered, win, pr.vp, pr.up)
+    b1 = _rendered_at(rendered, win, pr.vp - dv, pr.up - du)
+    b2 = _rendered_at(rendered, win, pr.vp - 2 * dv, pr.up - 2 * du)
+    ref = np.where(at > 0, at, np.where((b1 > 0) & (b2 > 0), 2 * b1 - b2, 0.0))
+    return (ref > 0) & (np.abs(pr.depth - ref) <= pr.free)
+
+
 def _nearest_edge(
-    u: npt.NDArray[np.intp], v: npt.NDArray[np.intp], a2: FloatArray, ab: FloatArray
+    u: npt.NDArray[np.intp] | FloatArray,
+    v: npt.NDArray[np.intp] | FloatArray,
+    a2: FloatArray,
+    ab: FloatArray,
 ) -> tuple[npt.NDArray[np.intp], FloatArray]:
     """Return the nearest image edge ``a2 + s ab`` (s in [0, 1]) of each pixel, and its s.
 

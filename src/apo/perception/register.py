@@ -839,6 +839,7 @@ def register_projective(
     occluder: npt.ArrayLike | None = None,
     clutter: bool = False,
     shared: npt.ArrayLike | None = None,
+    outline: bool = False,
     pool: Executor | None = None,
 ) -> Registration:
     """Projective point-to-plane ICP (:func:`apo.perception.projective.projective_icp`), scored.
@@ -875,6 +876,8 @@ def register_projective(
     shared : ndarray of bool, shape (H, W), optional
         Object pixels within the noise of the occluder's surface (not in ``mask``): see
         :func:`apo.perception.projective.projective_icp`.
+    outline : bool, optional
+        Add the two-sided outline rows (see :func:`apo.perception.projective.projective_icp`).
     pool : Executor, optional
         Scores the fitness on a thread of it (see :func:`evaluate`).
     """
@@ -883,6 +886,7 @@ def register_projective(
         depth, camera, model.faces, X_CM_init, mask=mask, sigma=sigma, floor=inlier_distance,
         start_scale=start_scale, iterations=iterations, occluder=occluder,
         constraint=constraint, clutter=clutter, shared=shared, extrapolate=True,
+        outline=outline,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,

@@ -64,7 +64,6 @@ from apo.perception.segment import (
     foreground_from_plane,
     grasped_mask,
     learn_colour,
-    occupancy,
     static_mask,
 )
 from apo.perception.smoothing import smooth_poses
@@ -411,7 +410,8 @@ def _environment_points(
         rgb, depth = cache[i] = frame or _read(src, i, colour=options.colour != _ANY)
         masks[k] = seg.objects(rgb, depth)
         depths[k] = depth
-    static = static_mask(occupancy(masks), static_fraction=options.static_fraction)
+    measured = np.maximum((depths > 0).sum(axis=0), 1)  # frames with a depth, per pixel
+    static = _static(masks, measured, options.static_fraction)
     # Per-pixel median depth of the static pixels (noise averaged; passages removed),
     # sorted at those pixels only (a tenth of the image or less).
     median = np.zeros(static.shape, dtype=np.float32)
@@ -421,13 +421,35 @@ def _environment_points(
     # a hand and forearm that move slowly are occupied as often as the environment (without
     # the colour cue), but at changing depths.
     thr = seg.threshold(med, options.environment_threshold, 1)
-    same = (m_s & (np.abs(d_s - med) <= thr)).mean(axis=0) >= options.same_surface_fraction
+    same = (m_s & (np.abs(d_s - med) <= thr)).sum(axis=0) >= (
+        options.same_surface_fraction * measured[static]
+    )
     median[static] = np.where(same, med, 0.0)
     # For the surface check: every pixel, over at most 9 of the frames (the sort is the cost).
     few = depths[:: max(1, -(-len(depths) // 9))]
     median_all = masked_median(few, few > 0)
     regions = _object_groups(static & (median > 0), median, src.camera, reach, share=0.1)
     return regions, median_all, surface_depth(depths, median > 0, seg.noise)
+
+
+def _static(masks: BoolArray, measured: npt.NDArray[np.int64], fraction: float) -> BoolArray:
+    """Pixels occupied in at least ``fraction`` of the frames, the outline's among those measured.
+
+    The sensor drops most pixels at a depth edge (both sides of the jump), so the static
+    region's outline pixels are occupied in few frames although every frame that measures
+    them sees the surface: counted over all frames, the environment's outline is eroded by
+    a pixel (and its silhouette's position is then a pixel off on that side). A pixel
+    next to the region is static when it is occupied in ``fraction`` of the frames that
+    measured it; elsewhere a frame without a depth counts as unoccupied (nothing within
+    the sensor's range: a forearm passing in front of a far background). ``measured``: how
+    many frames measured each pixel.
+    """
+    from scipy import ndimage
+
+    occupied = masks.sum(axis=0)
+    static = static_mask(occupied / len(masks), static_fraction=fraction)
+    ring = ndimage.binary_dilation(static, structure=np.ones((3, 3), dtype=bool)) & ~static
+    return np.asarray(static | (ring & (occupied >= fraction * measured)), dtype=bool)
 
 
 NO_COLOUR = np.zeros((0, 0, 3), dtype=np.uint8)
