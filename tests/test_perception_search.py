@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from apo.perception.example import peg_and_slot
@@ -101,3 +102,12 @@ def test_initialise_with_noise_and_clutter() -> None:
                 + np.degrees(rotation_angle(res.X_CM[:3, :3].T @ T[:3, :3]))
             )
         assert min(errs) < 1.0, (seed, errs)
+
+
+@pytest.mark.parametrize("shape", [(84, 150, 3), (3, 3000, 3), (1, 1, 3)])
+def test_jacobians_are_np_cross_bit_for_bit(shape: tuple[int, int, int]) -> None:
+    from apo.perception.search import _jacobians
+
+    rng = np.random.default_rng(len(shape) + shape[0])
+    Q, n = rng.normal(size=shape), rng.normal(size=shape)
+    np.testing.assert_array_equal(_jacobians(Q, n), np.concatenate([np.cross(Q, n), n], axis=2))

@@ -68,6 +68,16 @@ def _rotations(w: FloatArray) -> FloatArray:
     return np.asarray(np.eye(3)[None] + s * K + c * (K @ K), dtype=np.float64)
 
 
+def _jacobians(Q: FloatArray, n: FloatArray) -> FloatArray:
+    """Return ``[Q x n, n]`` (..., 6): ``np.cross``'s numbers, without its axis handling."""
+    J = np.empty((*Q.shape[:-1], 6))
+    J[..., 0] = Q[..., 1] * n[..., 2] - Q[..., 2] * n[..., 1]
+    J[..., 1] = Q[..., 2] * n[..., 0] - Q[..., 0] * n[..., 2]
+    J[..., 2] = Q[..., 0] * n[..., 1] - Q[..., 1] * n[..., 0]
+    J[..., 3:] = n
+    return J
+
+
 def batch_icp(
     points: npt.ArrayLike,
     model: ModelCloud,
@@ -125,7 +135,7 @@ def batch_icp(
         n = normals[idx]
         r = np.einsum("kni,kni->kn", Q - samples[idx], n)
         w = _weights(r, loss, scale) * ok
-        J = np.concatenate([np.cross(Q, n), n], axis=2)  # d r / d [omega; v]
+        J = _jacobians(Q, n)  # d r / d [omega; v]
         Jw = np.transpose(J * w[..., None], (0, 2, 1))
         A = Jw @ J
         b = -(Jw @ r[..., None])[..., 0]
