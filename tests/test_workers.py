@@ -77,6 +77,16 @@ for seed in (3, 17, 29, 41):
     for jobs in (2, 3):
         got = label_frames(scene.finder, X, jobs=jobs)
         same_labels.append(all(np.array_equal(u, v) for u, v in zip(one, got)))
+    # a child that dies with blocks taken from the shared counter: the parent searches them
+    codes = scene.finder.element_codes
+    def dying(Xb, __codes=codes, **kw):
+        if os.getpid() != parent:
+            os._exit(3)
+        return __codes(Xb, **kw)
+    scene.finder.element_codes = dying
+    got = label_frames(scene.finder, X, jobs=2)
+    del scene.finder.element_codes
+    same_labels.append(all(np.array_equal(u, v) for u, v in zip(one, got)))
     keys = sorted({e for st in observe(scene, jobs=1).states for e in st.key})
     alone = element_distances(G, E, X, keys)
     for jobs in (2, 3):

@@ -99,15 +99,20 @@ class Viterbi:
         e = np.asarray(emission, dtype=np.float64)
         back = np.zeros((len(e), len(self.trans)), dtype=self.dtype)
         acc, tot, trans = self.acc, self._tot, self.trans
-        for t in range(len(e)):
-            if acc is None:
-                acc = e[0].copy()
-                back[0] = np.arange(len(trans))
-                continue
-            np.add(acc[:, None], trans, out=tot)
-            back[t] = tot.argmin(axis=0)
-            tot.min(axis=0, out=acc)
-            acc += e[t]
+        first = 0
+        if acc is None and len(e):
+            acc = e[0].copy()
+            back[0] = np.arange(len(trans))
+            first = 1
+        if acc is not None:
+            # the same operations as one frame at a time by index, with the row views made by
+            # iterating and ``acc`` (updated in place) viewed as a column once
+            col, add, lowest, argmin = acc[:, None], np.add, np.minimum.reduce, tot.argmin
+            for row, et in zip(back[first:], e[first:], strict=True):
+                add(col, trans, out=tot)
+                row[...] = argmin(axis=0)
+                lowest(tot, axis=0, out=acc)
+                add(acc, et, out=acc)
         self.acc = acc
         self.back.append(back)
 
@@ -144,16 +149,20 @@ class UniformViterbi:
         best = np.zeros(len(e), dtype=np.int32)
         moved = np.zeros((len(e), self.k), dtype=bool)
         acc, s = self.acc, self.switch
-        for t in range(len(e)):
-            if acc is None:
-                acc = e[0].copy()
-                continue
-            j = int(acc.argmin())
-            m = acc[j] + s
-            np.less(m, acc, out=moved[t])
-            np.minimum(acc, m, out=acc)
-            acc += e[t]
-            best[t] = j
+        first = 0
+        if acc is None and len(e):
+            acc = e[0].copy()
+            first = 1
+        if acc is not None:
+            # the same operations as one frame at a time by index (row views by iterating)
+            less, minimum, add, argmin = np.less, np.minimum, np.add, acc.argmin
+            for t, et, mt in zip(range(first, len(e)), e[first:], moved[first:], strict=True):
+                j = argmin()
+                m = acc[j] + s
+                less(m, acc, out=mt)
+                minimum(acc, m, out=acc)
+                add(acc, et, out=acc)
+                best[t] = j
         self.acc = acc
         self.best.append(best)
         self.moved.append(np.packbits(moved, axis=1))

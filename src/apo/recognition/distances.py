@@ -91,9 +91,11 @@ def element_distances(
     return out
 
 
-#: Least ``frames x keys`` whose distances :func:`split_distances` splits over processes: a
-#: fork costs 2-5 ms, the distances of one key some 0.15-0.2 us a frame (about 10 ms here).
-SPLIT_MIN_KEY_FRAMES = 50_000
+#: Least ``frames x keys`` whose distances :func:`split_distances` splits over processes
+#: (auto): the distances of one key cost some 0.15-0.2 us a frame, a fork 2-5 ms of the
+#: parent's time and about 10 ms of CPU of both processes together (the synthetic 3,000
+#: frames' 63 keys, 189,000: split; the jittered 2,993 frames' 30 keys, 89,790: not).
+SPLIT_MIN_KEY_FRAMES = 100_000
 
 
 def split_distances(
