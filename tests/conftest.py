@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -10,7 +12,18 @@ import pytest
 
 # Tests never write to the user's cache: the model cache (apo.io.meshes) goes to a folder of
 # this test session (each xdist worker its own).
-os.environ["APO_CACHE_DIR"] = tempfile.mkdtemp(prefix="apo-test-cache-")
+# The folder is removed when the process that made it exits (not a forked child's exit).
+_CACHE_DIR = tempfile.mkdtemp(prefix="apo-test-cache-")
+_CACHE_OWNER = os.getpid()
+os.environ["APO_CACHE_DIR"] = _CACHE_DIR
+
+
+def _remove_cache_dir() -> None:
+    if os.getpid() == _CACHE_OWNER:
+        shutil.rmtree(_CACHE_DIR, ignore_errors=True)
+
+
+atexit.register(_remove_cache_dir)
 
 
 def shared_data_dir() -> Path | None:

@@ -529,3 +529,17 @@ def test_report_pose_rows_in_blocks_are_those_of_all_kept_frames(monkeypatch) ->
     for block in (1, 7, 4096):
         monkeypatch.setattr(html, "POSE_ROWS_BLOCK", block)
         assert html.pack_array(html._kept_pose_rows(X, keep, 1000.0), "f4") == want
+
+
+def test_outputs_need_no_costs_candidates_or_observed_states(tmp_path) -> None:
+    """``apo analyze`` drops the segmentation's costs, the candidates and the observed states
+    before it writes (a long run peaks there): the outputs are the same without them."""
+    from apo.cli.analyze import outputs_part
+
+    rec, demo = _recognised(9)
+    part = outputs_part(rec)
+    assert part.costs.shape == (len(rec.costs), 0) and not part.cost_columns.size
+    assert part.candidates == [] and part.observed_states == [] and rec.observed_states
+    a, out_a = _write(tmp_path / "whole", rec, demo, whole=False)
+    b, out_b = _write(tmp_path / "part", part, demo, whole=False)
+    assert a == b and out_a == out_b

@@ -439,3 +439,30 @@ def test_surface_rows_gathered_once_are_the_masked_forms_bit_for_bit(seed: int) 
     assert 0 < np.count_nonzero(keep) < np.count_nonzero(surf)  # some faces at grazing angles
     for a, b in zip(got, want, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("clutter", [False, True])
+def test_register_projective_extrapolates_the_stop_only_without_clutter(
+    clutter: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Depth alone (clutter: a hand's pixels in the mask) stops at a step below the
+    # tolerance; with the colour cue, once the steps left are estimated below it.
+    import apo.perception.register as register
+
+    seen: list[bool] = []
+    real = register.projective_icp
+
+    def spy(*args: object, **kw: object) -> object:
+        seen.append(bool(kw["extrapolate"]))
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(register, "projective_icp", spy)
+    X_true = peg_pose(0.5, 40.0)
+    depth, mask = observe(X_true, 2e-3, 0)
+    (V, T), _ = peg_and_slot()
+    model = register.ModelCloud((V, T))
+    pts = CAMERA.backproject(depth, mask)
+    register.register_projective(
+        depth, CAMERA, model, X_true, points_C=pts, mask=mask, clutter=clutter
+    )
+    assert seen == [not clutter]

@@ -126,3 +126,38 @@ def test_depth_alone_with_a_hand_finds_the_part_not_the_hand(
         err.append(min(np.linalg.norm(X[:3, 3] - t[:3, 3]) for t in T) * 1e3)
     assert err[0] < 2.0 and np.median(err) < 1.5, (v.label(), err[:3])
     assert res.reinitialisations == 0 and not res.lost.any(), v.label()
+
+
+# Depth alone, a hand and forearm holding the part: the first frame's global search fitted
+# the part into the hand (dev seeds 4 and 6: 87 and 145 mm off, plausibility 0.93 and 0.77,
+# while the true pose scores 0.97 and 0.95): no start of the search reached the part among
+# the hand's points. A second search over the pixels that pick leaves unexplained finds it
+# (measured 0.4 and 2.6 mm; the frame-to-frame ICP then refines it).
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [4, 6])
+def test_depth_alone_second_search_finds_the_part_beside_the_hand(
+    tmp_path: Path, seed: int
+) -> None:
+    pytest.importorskip("open3d")
+    from apo.perception.frames import open_frames
+    from apo.perception.segment import ColourModel
+    from apo.perception.track import (
+        TrackOptions,
+        _find_environment,
+        _open_scene,
+        _read,
+        _Tracker,
+        _twin,
+    )
+
+    v = random_variant(seed, n_frames=30)
+    assert v.hand
+    r = render_variant(v, tmp_path / "f")
+    opt = TrackOptions(colour=ColourModel.any_colour())
+    scene = _open_scene(open_frames(r.frames), r.grasped, r.environment, "m", opt)
+    _find_environment(scene, r.X_CE)
+    _, depth = _read(scene.src, 0, colour=False)
+    found = _Tracker(scene, None).reinitialise(np.zeros((0, 0, 3), np.uint8), depth)
+    assert found is not None and found.confidence >= opt.min_confidence, v.label()
+    X = _twin(found.X_CM, r.X_CG0, scene.syms_G, scene.G)
+    assert np.linalg.norm(X[:3, 3] - r.X_CG0[:3, 3]) < 5e-3, v.label()

@@ -47,3 +47,24 @@ def test_a_bundle_that_needs_escaping_is_escaped(
     page = (tmp_path / "c.html").read_bytes()
     assert page == b"".join(report_parts(data))
     assert b"var a='<\\/script>';" in page and b"var a='</script>'" not in page
+
+
+def test_bundle_scanned_a_window_at_a_time(tmp_path: Path, monkeypatch) -> None:
+    """``</script`` is found wherever it lies, across the windows' edges too; the size is
+    the file's (the windows map a part of the bundle at a time: less resident memory)."""
+    import mmap
+
+    from apo.report import html
+
+    monkeypatch.setattr(html, "SCAN_WINDOW", mmap.ALLOCATIONGRANULARITY)
+    w, needle = mmap.ALLOCATIONGRANULARITY, b"</script"
+    for at in (None, 0, 5, w - 4, w - len(needle), w, 2 * w - 1, 3 * w + 17):
+        body = bytearray(b"x" * (3 * w + 40))
+        if at is not None:
+            body[at : at + len(needle)] = needle
+        path = tmp_path / f"b{at}.js"
+        path.write_bytes(bytes(body[: 3 * w + 40]))
+        assert html._file_lacks(path, needle) == (at is None, 3 * w + 40), at
+    empty = tmp_path / "empty.js"
+    empty.write_bytes(b"")
+    assert html._file_lacks(empty, needle) == (True, 0)

@@ -587,9 +587,12 @@ def task_json_chunks(task: TaskModel, *, depth: int = 2) -> Iterator[str]:
 
     The states, transitions and rejected runs are converted ``JSON_BLOCK_STATES`` at a
     time and written as they are made: the document of a long task (thousands of states)
-    is never held whole, as a dictionary or as text.
+    is never held whole, as a dictionary or as text. The document's other fields (the
+    graph: a list per distinct state of its visits, 1 MB at 6,000 states) are made at the
+    first chunk: by the process that writes, not by one that hands the chunks to a forked
+    writer (``apo.report.writer.write_recognition``).
     """
-    return json_chunks(_task_dict(task, lazy=True, lines=depth == 2), depth=depth)
+    yield from json_chunks(_task_dict(task, lazy=True, lines=depth == 2), depth=depth)
 
 
 def _task_dict(task: TaskModel, *, lazy: bool, lines: bool = False) -> dict[str, Any]:

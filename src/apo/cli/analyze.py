@@ -35,6 +35,7 @@ __all__ = [
     "atomic_path",
     "frames_csv",
     "model_ref",
+    "outputs_part",
     "print_result",
     "print_written",
     "register",
@@ -273,6 +274,24 @@ def print_written(written: dict[str, Path]) -> None:
         print(f"wrote {k}: {p}")
 
 
+def outputs_part(rec: Recognition) -> Recognition:
+    """Return ``rec`` without what no output of ``apo analyze`` reads.
+
+    The segmentation's costs (8 bytes a frame per analysed candidate), the candidates and
+    the observed states (their elements and touching sets: a noisy demonstration shows
+    more of them the longer it is) are dropped before the outputs are written, where a
+    long run peaks (docs/recognition.md, "Session 7: memory"); the task, the per-frame
+    arrays and the poses stay.
+    """
+    from dataclasses import replace
+
+    import numpy as np
+
+    empty = np.zeros((len(rec.costs), 0))
+    return replace(rec, costs=empty, cost_columns=np.zeros(0, dtype=np.int64), candidates=[],
+                   observed_states=[])  # fmt: skip
+
+
 def _warn_scale(
     G: Polyhedron,
     E: Polyhedron,
@@ -441,6 +460,7 @@ def _run(
         )
     finally:
         close()
+    rec = outputs_part(rec)
     return write_recognition(
         outs,
         rec,
