@@ -12,7 +12,7 @@ G in the environment frame E (``docs/conventions.md``).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, TypeVar, cast, overload
 
@@ -691,37 +691,19 @@ def _state_lines(states: Sequence[State], k: float, memo: dict[Any, Any]) -> lis
         return []
     if isinstance(states, StateTable):
         return _table_state_lines(states, k, memo)
-    quats = quaternions_from_matrices(np.array([st.X_EG[:3, :3] for st in states]))
-    pos = np.array([np.asarray(st.X_EG, dtype=float)[:3, 3] for st in states])
+    if not all(isinstance(st.id, str) and isinstance(st.same_as, str | None) for st in states):
+        return _states_to_dicts(states, k)
+    X = np.array([np.asarray(st.X_EG, dtype=float) for st in states])
     times = np.array([st.times for st in states], dtype=float)
-    nums = np.concatenate([times, pos if k == 1.0 else pos * k, quats], axis=1)
     els = [e for st in states for e in st.elements]
     points = np.array([e.point for e in els], dtype=float).reshape(-1, 3)
-    if k != 1.0:
-        points = points * k
-    if not (np.isfinite(nums).all() and np.isfinite(points).all()) or not all(
-        isinstance(st.id, str) and isinstance(st.same_as, str | None) for st in states
-    ):
-        return _states_to_dicts(states, k)
-    texts = rounded_texts(nums.ravel().tolist() + points.ravel().tolist())
-    try:
-        elements = _element_texts(els, texts[9 * len(states) :], memo)
-    except ValueError:  # a normal that is not finite
-        return _states_to_dicts(states, k)
-    out: list[Any] = []
-    j = 0
-    for i, st in enumerate(states):
-        n, t = len(st.elements), texts[9 * i : 9 * i + 9]
-        out.append(RawJson(_STATE_LINE.format(
-            json_str(st.id), int(st.frames[0]), int(st.frames[1]), t[0], t[1],
-            "true" if st.singular else "false", _dof_text(st, memo),
-            ", ".join(elements[j : j + n]), *t[2:],
-            "null" if st.pose_frame is None else int(st.pose_frame),
-            "true" if st.pose_converged else "false",
-            "null" if st.same_as is None else json_str(st.same_as),
-        )))  # fmt: skip
-        j += n
-    return out
+    rows = (
+        (st.id, int(st.frames[0]), int(st.frames[1]), st.singular, _dof_text(st, memo),
+         len(st.elements), None if st.pose_frame is None else int(st.pose_frame),
+         st.pose_converged, st.same_as)
+        for st in states
+    )  # fmt: skip
+    return _lines_of_states(states, (times, X, points, els), rows, k, memo)
 
 
 def _table_state_lines(table: StateTable, k: float, memo: dict[Any, Any]) -> list[Any]:
@@ -732,32 +714,54 @@ def _table_state_lines(table: StateTable, k: float, memo: dict[Any, Any]) -> lis
     normals come from each :class:`StateKind`. Where a number is not finite, the states
     are made and written as dictionaries.
     """
-    pos = table.poses[:, :3, 3]
-    quats = quaternions_from_matrices(np.ascontiguousarray(table.poses[:, :3, :3]))
-    nums = np.concatenate([table.times, pos if k == 1.0 else pos * k, quats], axis=1)
-    points = table.placed_points()
+    kinds = [table.kinds[kk] for kk in table.kind.tolist()]
+    els = [e for kd in kinds for e in kd.elements]  # the kinds' records: features, normals
+    rows = (
+        (sid, a, b, kd.singular, _dof_text(kd, memo), len(kd.elements),
+         None if pf < 0 else pf, conv, same)
+        for sid, (a, b), pf, conv, same, kd in zip(
+            table.ids, table.frames.tolist(), table.pose_frames.tolist(),
+            table.converged.tolist(), table.same_as, kinds, strict=True)
+    )  # fmt: skip
+    numbers = (table.times, table.poses, table.placed_points(), els)
+    return _lines_of_states(table, numbers, rows, k, memo)
+
+
+def _lines_of_states(
+    states: Sequence[State],
+    numbers: tuple[FloatArray, FloatArray, FloatArray, list[Element]],
+    rows: Iterable[tuple[Any, ...]],
+    k: float,
+    memo: dict[Any, Any],
+) -> list[Any]:
+    """Return the text lines of ``states`` from their numbers and the other fields by row.
+
+    ``numbers`` is (times (n, 2), poses (n, 4, 4), the elements' points (m, 3), the m
+    elements); ``rows`` gives each state's id, first and last frame, singular, DOF text,
+    number of elements, pose frame (or None), converged and same-as. Lengths are scaled by
+    ``k``. Where a number is not finite, :func:`_states_to_dicts` of ``states`` instead.
+    """
+    times, X, points, els = numbers
+    quats = quaternions_from_matrices(np.ascontiguousarray(X[:, :3, :3]))
+    pos = X[:, :3, 3]
+    nums = np.concatenate([times, pos if k == 1.0 else pos * k, quats], axis=1)
     if k != 1.0:
         points = points * k
     if not (np.isfinite(nums).all() and np.isfinite(points).all()):
-        return _states_to_dicts(table, k)
-    kinds = [table.kinds[kk] for kk in table.kind.tolist()]
-    els = [e for kd in kinds for e in kd.elements]  # the kinds' records: features, normals
+        return _states_to_dicts(states, k)
     texts = rounded_texts(nums.ravel().tolist() + points.ravel().tolist())
     try:
-        elements = _element_texts(els, texts[9 * len(kinds) :], memo)
+        elements = _element_texts(els, texts[9 * len(states) :], memo)
     except ValueError:  # a normal that is not finite
-        return _states_to_dicts(table, k)
+        return _states_to_dicts(states, k)
     out: list[Any] = []
     j = 0
-    rows = zip(table.ids, table.frames.tolist(), table.pose_frames.tolist(),
-               table.converged.tolist(), table.same_as, kinds, strict=True)  # fmt: skip
-    for i, (sid, (a, b), pf, conv, same, kd) in enumerate(rows):
-        n, t = len(kd.elements), texts[9 * i : 9 * i + 9]
+    for i, (sid, a, b, singular, dof, n, pf, conv, same) in enumerate(rows):
+        t = texts[9 * i : 9 * i + 9]
         out.append(RawJson(_STATE_LINE.format(
-            json_str(sid), a, b, t[0], t[1], "true" if kd.singular else "false",
-            _dof_text(kd, memo), ", ".join(elements[j : j + n]), *t[2:],
-            "null" if pf < 0 else pf, "true" if conv else "false",
-            "null" if same is None else json_str(same),
+            json_str(sid), a, b, t[0], t[1], "true" if singular else "false", dof,
+            ", ".join(elements[j : j + n]), *t[2:], "null" if pf is None else pf,
+            "true" if conv else "false", "null" if same is None else json_str(same),
         )))  # fmt: skip
         j += n
     return out
