@@ -5,7 +5,10 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -39,3 +42,23 @@ def real_data_dir() -> Path:
     if path is None:
         pytest.skip("first author's data not found at ../shared/data/apo-peg-in-hole")
     return path
+
+
+@pytest.fixture
+def analyze_imports(tmp_path: Path) -> Callable[[list[str], str], bool]:
+    """Whether ``apo analyze ARGS --out <tmp>/out``, in a fresh interpreter, imports a module."""
+
+    def run(args: list[str], module: str) -> bool:
+        code = (
+            "import sys\nfrom apo.cli import main\n"
+            f"main({[*args, '--out', str(tmp_path / 'out')]!r})\n"
+            f"print({module!r} in sys.modules)\n"
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True
+        )
+        last = out.stdout.strip().splitlines()[-1]
+        assert last in ("True", "False"), out.stdout
+        return last == "True"
+
+    return run

@@ -45,7 +45,7 @@ def test_median_is_numpys(seed: int) -> None:
     assert median(np.array([2.5])) == 2.5
 
 
-def test_recognition_does_not_import_numpy_ma(tmp_path) -> None:
+def test_recognition_does_not_import_numpy_ma(tmp_path, analyze_imports) -> None:
     """A short demonstration analysed in a fresh interpreter never imports numpy.ma."""
     from apo.cli.demo import _write_stl
     from apo.io.poses import write_pose_csv
@@ -57,13 +57,7 @@ def test_recognition_does_not_import_numpy_ma(tmp_path) -> None:
     _write_stl(demo.environment, e, 1000.0)
     csv = write_pose_csv(tmp_path / "d.csv", demo.times, demo.X_EG, units="mm")
     args = ["analyze", str(csv), "--grasped", str(g), "--environment", str(e)]
-    code = (
-        "import sys\nfrom apo.cli import main\n"
-        f"main({[*args, '--out', str(tmp_path / 'out')]!r})\n"
-        "print('numpy.ma' in sys.modules)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip().splitlines()[-1] == "False"
+    assert not analyze_imports(args, "numpy.ma")
 
 
 def test_replay_of_a_long_track_does_not_import_numpy_ma() -> None:
