@@ -1014,6 +1014,7 @@ def initialise(
     occluder: npt.ArrayLike | None = None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] | None = None,
+    pool: Executor | None = None,
 ) -> Registration:
     """Find a model's pose from its observed points without an initial guess.
 
@@ -1059,6 +1060,9 @@ def initialise(
         ``rank(registration) -> tuple``, greater is better: how candidates are ranked
         (default :func:`plausibility`; :func:`whole_plausibility` for an object that is all
         of its points).
+    pool : Executor, optional
+        A thread for half of the batched ICP's candidates (:func:`batch_icp`) and the
+        candidates' fitness queries (:func:`evaluate`) meanwhile: the same result.
 
     Returns
     -------
@@ -1076,7 +1080,8 @@ def initialise(
              "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
              "occluder": occluder}  # fmt: skip
     search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
-              "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank}  # fmt: skip
+              "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank,
+              "pool": pool}  # fmt: skip
     found = centres(P, model.diameter)
     if len(found) == 1:
         return _search(P, model, score, **search)
@@ -1141,6 +1146,7 @@ def _search(
     symmetry_rotations: npt.ArrayLike | None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] = plausibility,
+    pool: Executor | None = None,
 ) -> Registration:
     """Run the coarse-to-fine search of :func:`initialise` about the centroid of ``P``."""
     from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
@@ -1165,14 +1171,18 @@ def _search(
     d0 = model.diameter / 4
     for dist in (d0, d0 / 3):  # coarse: every candidate, few points, sparse samples
         dist = max(dist, 2 * inlier_distance)
-        T = batch_icp(few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss)
+        T = batch_icp(
+            few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss, pool=pool
+        )
     # The best distinct results on more points; then scored on the depth image.
     order = np.argsort(-inlier_fraction(sub, model, T, 2 * inlier_distance), kind="stable")
     T = T[distinct_poses(T[order], model, symmetry_rotations, limit=CANDIDATES)]
     for dist in (d0 / 9, d0 / 27):
         dist = max(dist, 2 * inlier_distance)
-        T = batch_icp(sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss)
-    scored = [evaluate(sub, model, invert_pose(t), **score) for t in T]
+        T = batch_icp(
+            sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss, pool=pool
+        )
+    scored = [evaluate(sub, model, invert_pose(t), pool=pool, **score) for t in T]
     ranked_all = sorted(range(len(T)), key=lambda k: rank(scored[k]), reverse=True)
     ranked = ranked_all[:keep]
     polished = [] if polish is None else [polish(invert_pose(t)) for t in T[ranked_all[:POLISHED]]]
@@ -1184,7 +1194,7 @@ def _search(
         last = k == 2
         T = batch_icp(
             full, model, T, distance=dist, scale=inlier_distance if last else dist / 2,
-            iterations=30, dense=last, loss=loss,
+            iterations=30, dense=last, loss=loss, pool=pool,
         )  # fmt: skip
-    best = [evaluate(full, model, invert_pose(t), **score) for t in T]
+    best = [evaluate(full, model, invert_pose(t), pool=pool, **score) for t in T]
     return max(best + [r for r in polished if r is not None], key=rank)
