@@ -797,17 +797,22 @@ def evaluate(
 
     The fitness and RMS residual against the dense samples; with ``depth`` and ``camera``,
     the surface check (the confidence); with ``obstacle``, the penetration. The parameters
-    are those of :func:`register`. With ``pool``, the fitness's k-d query (which releases the
-    GIL) runs on a thread of it while this one renders the surface check: the same numbers.
+    are those of :func:`register`. With ``pool``, the fitness's k-d query and the penetration's
+    (which release the GIL) run on a thread of it while this one renders the surface check:
+    the same numbers.
     """
     P = np.asarray(points_C, dtype=np.float64)
     X = orthonormalised(X_CM)
     reach = inlier_distance + 2 * model.spacing  # no farther point is an inlier: exact
     P_M = transform_points(invert_pose(X), P)
-    fit = None
+    fit = pen = None
     if pool is not None:
         model.tree()  # built here, never by two threads
         fit = pool.submit(model.residuals, P_M, max_distance=reach)
+        if obstacle is not None:
+            obstacle[0].tree()
+            obstacle[0].closed()
+            pen = pool.submit(penetration, X, model, obstacle)
     surface = None
     if depth is not None and camera is not None:
         surface = surface_check(
@@ -817,9 +822,12 @@ def evaluate(
     inlier = (plane <= inlier_distance) & (point <= reach)
     fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
     rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
-    pen = penetration(X, model, obstacle) if obstacle is not None else 0.0
+    if pen is not None:
+        depth_in = pen.result()
+    else:
+        depth_in = penetration(X, model, obstacle) if obstacle is not None else 0.0
     violation = surface.violation if surface is not None else 0.0
-    return Registration(X, fitness, rmse, violation, len(P), pen, surface)
+    return Registration(X, fitness, rmse, violation, len(P), depth_in, surface)
 
 
 def register_projective(
@@ -879,7 +887,8 @@ def register_projective(
     outline : bool, optional
         Add the two-sided outline rows (see :func:`apo.perception.projective.projective_icp`).
     pool : Executor, optional
-        Scores the fitness on a thread of it (see :func:`evaluate`).
+        Computes the non-penetration rows of each step and scores the fitness and the
+        penetration on a thread of it (see :func:`evaluate`): the same numbers.
 
     A run stops once the steps left are below the tolerance in all (``projective_icp(
     extrapolate=True)``), except with ``clutter``: with depth alone a square peg held by a
@@ -893,7 +902,7 @@ def register_projective(
         start_scale=start_scale, iterations=iterations, occluder=occluder,
         constraint=constraint, clutter=clutter, shared=shared,
         extrapolate=not clutter,
-        outline=outline,
+        outline=outline, pool=pool,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
@@ -931,6 +940,8 @@ def _non_penetration(
     pts = model.points[:: max(1, len(model.points) // samples)]
     lo = other.vertices.min(0) - PENETRATION_ALLOWANCE
     hi = other.vertices.max(0) + PENETRATION_ALLOWANCE
+    other.tree()  # built here: ``rows`` may run on another thread
+    other.closed()
 
     def rows(X_CM: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         X_OM = X_OC @ X_CM
