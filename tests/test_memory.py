@@ -540,6 +540,7 @@ def test_outputs_need_no_costs_candidates_or_observed_states(tmp_path) -> None:
     part = outputs_part(rec)
     assert part.costs.shape == (len(rec.costs), 0) and not part.cost_columns.size
     assert part.candidates == [] and part.observed_states == [] and rec.observed_states
+    assert part.keys == [] and not part.feasible.size and rec.keys
     a, out_a = _write(tmp_path / "whole", rec, demo, whole=False)
     b, out_b = _write(tmp_path / "part", part, demo, whole=False)
     assert a == b and out_a == out_b
