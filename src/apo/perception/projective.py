@@ -163,12 +163,22 @@ class FacePlanes:
 
 
 def face_planes(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> FacePlanes:
-    """Return the :class:`FacePlanes` of a mesh (degenerate triangles get a zero normal)."""
+    """Return the :class:`FacePlanes` of a mesh (degenerate triangles get a zero normal).
+
+    The edges join the triangles by their corners' coordinates, not their indices: an STL
+    file repeats each vertex per triangle, and with the indices as given every edge had one
+    triangle, so every edge of a face turned to the camera (a face's diagonal, the rim
+    between the top and a side in view) was a silhouette edge (:meth:`FacePlanes.silhouette_edges`)
+    for the contour and outline rows. ``triangles`` and ``edges`` index the first of the
+    vertices at equal coordinates (the same triangles).
+    """
     V = np.asarray(vertices, dtype=np.float64)
     T = np.asarray(triangles, dtype=np.int64)
     cross = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
     length = np.linalg.norm(cross, axis=1, keepdims=True)
     n = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
+    _, first, same = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    T = first[same.ravel()][T]  # each corner as the first vertex at its coordinates
     e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
     face = np.tile(np.arange(len(T)), 3)
     edges, inv = np.unique(e, axis=0, return_inverse=True)

@@ -1025,6 +1025,8 @@ def initialise(
     occluder: npt.ArrayLike | None = None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] | None = None,
+    polish_below: float = np.inf,
+    polish_finalists: bool = False,
     pool: Executor | None = None,
 ) -> Registration:
     """Find a model's pose from its observed points without an initial guess.
@@ -1067,6 +1069,17 @@ def initialise(
         frame); run from the :data:`POLISHED` most plausible candidates once they are
         scored, its results compete with the refined ones. Without the colour, the
         closest-point ICP of the search is pulled by the hand's points near the part.
+    polish_below : float, optional
+        ``polish`` runs only when the most plausible refined candidate ranks below this
+        (default: always). With the colour the closest-point refinement is usually good,
+        but the hand's and the table's points near the part can leave the true candidate
+        a few millimetres off and ranked below a wrong one (dev variant 213, a T-peg held
+        by a hand: 2.6 mm off, plausibility 0.935 against 0.937 for one turned 85 deg about
+        its axis; polished 0.956).
+    polish_finalists : bool, optional
+        ``polish`` the ``keep`` candidates refined on all points (from their refined poses)
+        instead of the :data:`POLISHED` most plausible ones before that refinement (which
+        the hand's points can pull off the part without the colour).
     rank : callable, optional
         ``rank(registration) -> tuple``, greater is better: how candidates are ranked
         (default :func:`plausibility`; :func:`whole_plausibility` for an object that is all
@@ -1092,6 +1105,7 @@ def initialise(
              "occluder": occluder}  # fmt: skip
     search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
               "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank,
+              "polish_below": polish_below, "polish_finalists": polish_finalists,
               "pool": pool}  # fmt: skip
     found = centres(P, model.diameter)
     if len(found) == 1:
@@ -1157,6 +1171,8 @@ def _search(
     symmetry_rotations: npt.ArrayLike | None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] = plausibility,
+    polish_below: float = np.inf,
+    polish_finalists: bool = False,
     pool: Executor | None = None,
 ) -> Registration:
     """Run the coarse-to-fine search of :func:`initialise` about the centroid of ``P``."""
@@ -1196,7 +1212,7 @@ def _search(
     scored = [evaluate(sub, model, invert_pose(t), pool=pool, **score) for t in T]
     ranked_all = sorted(range(len(T)), key=lambda k: rank(scored[k]), reverse=True)
     ranked = ranked_all[:keep]
-    polished = [] if polish is None else [polish(invert_pose(t)) for t in T[ranked_all[:POLISHED]]]
+    to_polish = T[ranked_all[:POLISHED]]
     # The most confident, on all points (at most REFINE_POINTS, evenly spread), dense samples.
     T = T[ranked]
     d1 = model.diameter / 12
@@ -1208,4 +1224,7 @@ def _search(
             iterations=30, dense=last, loss=loss, pool=pool,
         )  # fmt: skip
     best = [evaluate(full, model, invert_pose(t), pool=pool, **score) for t in T]
-    return max(best + [r for r in polished if r is not None], key=rank)
+    if polish is not None and rank(max(best, key=rank))[0] < polish_below:
+        starts = [r.X_CM for r in best] if polish_finalists else [invert_pose(t) for t in to_polish]
+        best += [r for r in map(polish, starts) if r is not None]
+    return max(best, key=rank)

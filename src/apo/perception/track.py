@@ -983,7 +983,8 @@ class _Tracker:
             r = initialise(
                 pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
                 symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
-                polish=polish if self.clutter else None, pool=self.pool,
+                polish=polish, polish_below=np.inf if self.clutter else self.opt.good_confidence,
+                polish_finalists=not self.clutter, pool=self.pool,
                 **self.scene.settings(pts),
             )  # fmt: skip
             if best is None or plausibility(r) > plausibility(best):
