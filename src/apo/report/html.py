@@ -539,9 +539,12 @@ def _json_pieces(value: Any, depth: int, *, last: bool = True) -> Iterator[str]:
     >>> d = {"a": {"b": [1, 2.5], "c": {"d": "x"}}, "e": None}
     >>> "".join(_json_pieces(d, 2)) == json.dumps(d, separators=(",", ":"))
     True
+    >>> "".join(_json_pieces({1: "x"}, 2, last=False))  # keys made strings: written whole
+    '{"1":"x"'
     """
     if depth <= 0 or not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-        yield json.dumps(value, separators=(",", ":"), allow_nan=False)
+        text = json.dumps(value, separators=(",", ":"), allow_nan=False)
+        yield text if last or not isinstance(value, dict) else text[:-1]
         return
     yield "{"
     for i, (k, v) in enumerate(value.items()):
