@@ -323,32 +323,37 @@ def test_first_tukey_scale_follows_the_prediction_error(
     assert pos.max() < 0.05 and rot.max() < 0.02, (pos.max(), rot.max())  # 0.037 / 0.006
 
 
-def test_fitness_scored_on_a_second_thread_gives_the_same_numbers(
-    scene: dict, monkeypatch: pytest.MonkeyPatch
+_POOLED_FIELDS = {
+    # register.evaluate: the fitness and the penetration scored on a thread of the pool
+    # while the surface check renders
+    "evaluate": ("X_CM", "fitness", "rmse", "n_points", "violation", "penetration", "surface"),
+    # projective.projective_icp: each step's non-penetration rows computed on a thread of
+    # the pool while the model renders
+    "projective_icp": ("X_CM", "pairs", "rms", "iterations", "converged"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_POOLED_FIELDS))
+def test_work_on_the_pools_second_thread_gives_the_same_numbers(
+    scene: dict, monkeypatch: pytest.MonkeyPatch, name: str
 ) -> None:
-    # The frame loop scores each projective result's fitness on a thread of its pool while
-    # the surface check renders: the same Registration as scored on one thread.
+    # The frame loop's pooled calls return what the same call on one thread returns.
     import apo.perception.register as register
 
-    real = register.evaluate
+    real = getattr(register, name)
     pooled = 0
 
     def both(*args: object, **kw: object) -> object:
         nonlocal pooled
-        got = real(*args, **kw)  # type: ignore[arg-type]
-        if kw.get("pool") is not None:
+        got = real(*args, **kw)
+        if kw.get("pool") is not None and (name == "evaluate" or kw.get("constraint")):
             pooled += 1
-            alone = real(*args, **{**kw, "pool": None})  # type: ignore[arg-type]
-            np.testing.assert_array_equal(got.X_CM, alone.X_CM)
-            assert (got.fitness, got.rmse, got.n_points) == (
-                alone.fitness, alone.rmse, alone.n_points,
-            )  # fmt: skip
-            assert (got.violation, got.penetration, got.surface) == (
-                alone.violation, alone.penetration, alone.surface,
-            )  # fmt: skip
+            alone = real(*args, **{**kw, "pool": None})
+            for field in _POOLED_FIELDS[name]:
+                np.testing.assert_array_equal(getattr(got, field), getattr(alone, field), field)
         return got
 
-    monkeypatch.setattr(register, "evaluate", both)
+    monkeypatch.setattr(register, name, both)
     res = track_from_the_true_start(scene)
     assert not res.lost.any()
-    assert pooled >= len(res.times)  # every frame's projective result
+    assert pooled >= len(res.times)  # every frame's projective run and its scoring

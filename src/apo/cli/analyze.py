@@ -277,10 +277,11 @@ def print_written(written: dict[str, Path]) -> None:
 def outputs_part(rec: Recognition) -> Recognition:
     """Return ``rec`` without what no output of ``apo analyze`` reads.
 
-    The segmentation's costs (8 bytes a frame per analysed candidate), the candidates and
-    the observed states (their elements and touching sets: a noisy demonstration shows
-    more of them the longer it is) are dropped before the outputs are written, where a
-    long run peaks (docs/recognition.md, "Session 7: memory"); the task, the per-frame
+    The segmentation's costs (8 bytes a frame per analysed candidate), the candidates, the
+    observed states, the candidates' keys and feasible transitions (a noisy demonstration
+    shows more states the longer it is, each with its elements and touching set) are
+    dropped before the outputs are written, where a long run peaks (docs/recognition.md,
+    "Session 7: memory", "Session 8"); the task, the per-frame
     arrays and the poses stay.
     """
     from dataclasses import replace
@@ -289,7 +290,7 @@ def outputs_part(rec: Recognition) -> Recognition:
 
     empty = np.zeros((len(rec.costs), 0))
     return replace(rec, costs=empty, cost_columns=np.zeros(0, dtype=np.int64), candidates=[],
-                   observed_states=[])  # fmt: skip
+                   observed_states=[], keys=[], feasible=np.zeros((0, 0), dtype=bool))  # fmt: skip
 
 
 def _warn_scale(
@@ -457,6 +458,7 @@ def _run(
             models=(model_ref(gp, out), model_ref(ep, out)),
             source=demo.name,
             jobs=args.jobs,
+            keep_costs=False,  # no output reads them (outputs_part)
         )
     finally:
         close()

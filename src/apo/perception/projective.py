@@ -80,7 +80,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -90,6 +90,9 @@ from apo.perception.meshdistance import is_solid
 from apo.perception.render import rasterize
 from apo.spatial import orthonormalised, transform_points
 from apo.typing import FloatArray
+
+if TYPE_CHECKING:
+    from concurrent.futures import Executor
 
 __all__ = [
     "FacePlanes", "ProjectiveResult", "face_planes", "occluders", "projective_icp",
@@ -160,12 +163,22 @@ class FacePlanes:
 
 
 def face_planes(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> FacePlanes:
-    """Return the :class:`FacePlanes` of a mesh (degenerate triangles get a zero normal)."""
+    """Return the :class:`FacePlanes` of a mesh (degenerate triangles get a zero normal).
+
+    The edges join the triangles by their corners' coordinates, not their indices: an STL
+    file repeats each vertex per triangle, and with the indices as given every edge had one
+    triangle, so every edge of a face turned to the camera (a face's diagonal, the rim
+    between the top and a side in view) was a silhouette edge (:meth:`FacePlanes.silhouette_edges`)
+    for the contour and outline rows. ``triangles`` and ``edges`` index the first of the
+    vertices at equal coordinates (the same triangles).
+    """
     V = np.asarray(vertices, dtype=np.float64)
     T = np.asarray(triangles, dtype=np.int64)
     cross = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
     length = np.linalg.norm(cross, axis=1, keepdims=True)
     n = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
+    _, first, same = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    T = first[same.ravel()][T]  # each corner as the first vertex at its coordinates
     e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
     face = np.tile(np.arange(len(T)), 3)
     edges, inv = np.unique(e, axis=0, return_inverse=True)
@@ -378,6 +391,7 @@ def projective_icp(
     shared: npt.ArrayLike | None = None,
     outline: bool = False,
     extrapolate: bool = False,
+    pool: Executor | None = None,
 ) -> ProjectiveResult:
     """Projective point-to-plane ICP of a model to the object's pixels of a depth image.
 
@@ -444,6 +458,10 @@ def projective_icp(
         Also stop once the steps left, estimated from the last two at the final scale as a
         geometric series, sum to less than ``tolerance`` (:func:`_settled`): a step sooner
         on most runs of the frame-to-frame tracker. Off, a run stops at a step below it.
+    pool : Executor, optional
+        Each step's ``constraint`` rows are computed on a thread of it (their k-d queries
+        release the GIL) while this one renders the model and forms the other rows: the
+        same rows. ``constraint`` must then be safe to call from another thread.
 
     Returns
     -------
@@ -463,9 +481,10 @@ def projective_icp(
     last = float("inf")  # the last step's motion, if at the final scale
     for it in range(1, iterations + 1 if n_obs else 1):  # no object pixel: no evidence
         steps = it
+        extra = None if pool is None or constraint is None else pool.submit(constraint, X)
         rows = _rows(X, model, win, cos_min, scale_k, silhouette=silhouette, clutter=clutter)
         if constraint is not None:
-            rows = _with_constraint(rows, constraint(X))
+            rows = _with_constraint(rows, constraint(X) if extra is None else extra.result())
         system = _normal_equations(rows, scale_k)
         if system is None:
             break

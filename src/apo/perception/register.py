@@ -797,17 +797,22 @@ def evaluate(
 
     The fitness and RMS residual against the dense samples; with ``depth`` and ``camera``,
     the surface check (the confidence); with ``obstacle``, the penetration. The parameters
-    are those of :func:`register`. With ``pool``, the fitness's k-d query (which releases the
-    GIL) runs on a thread of it while this one renders the surface check: the same numbers.
+    are those of :func:`register`. With ``pool``, the fitness's k-d query and the penetration's
+    (which release the GIL) run on a thread of it while this one renders the surface check:
+    the same numbers.
     """
     P = np.asarray(points_C, dtype=np.float64)
     X = orthonormalised(X_CM)
     reach = inlier_distance + 2 * model.spacing  # no farther point is an inlier: exact
     P_M = transform_points(invert_pose(X), P)
-    fit = None
+    fit = pen = None
     if pool is not None:
         model.tree()  # built here, never by two threads
         fit = pool.submit(model.residuals, P_M, max_distance=reach)
+        if obstacle is not None:
+            obstacle[0].tree()
+            obstacle[0].closed()
+            pen = pool.submit(penetration, X, model, obstacle)
     surface = None
     if depth is not None and camera is not None:
         surface = surface_check(
@@ -817,9 +822,12 @@ def evaluate(
     inlier = (plane <= inlier_distance) & (point <= reach)
     fitness = float(np.count_nonzero(inlier)) / max(len(P), 1)
     rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else float("inf")
-    pen = penetration(X, model, obstacle) if obstacle is not None else 0.0
+    if pen is not None:
+        depth_in = pen.result()
+    else:
+        depth_in = penetration(X, model, obstacle) if obstacle is not None else 0.0
     violation = surface.violation if surface is not None else 0.0
-    return Registration(X, fitness, rmse, violation, len(P), pen, surface)
+    return Registration(X, fitness, rmse, violation, len(P), depth_in, surface)
 
 
 def register_projective(
@@ -879,7 +887,8 @@ def register_projective(
     outline : bool, optional
         Add the two-sided outline rows (see :func:`apo.perception.projective.projective_icp`).
     pool : Executor, optional
-        Scores the fitness on a thread of it (see :func:`evaluate`).
+        Computes the non-penetration rows of each step and scores the fitness and the
+        penetration on a thread of it (see :func:`evaluate`): the same numbers.
 
     A run stops once the steps left are below the tolerance in all (``projective_icp(
     extrapolate=True)``), except with ``clutter``: with depth alone a square peg held by a
@@ -893,7 +902,7 @@ def register_projective(
         start_scale=start_scale, iterations=iterations, occluder=occluder,
         constraint=constraint, clutter=clutter, shared=shared,
         extrapolate=not clutter,
-        outline=outline,
+        outline=outline, pool=pool,
     )  # fmt: skip
     return evaluate(
         points_C, model, res.X_CM, inlier_distance=inlier_distance, depth=depth, camera=camera,
@@ -931,6 +940,8 @@ def _non_penetration(
     pts = model.points[:: max(1, len(model.points) // samples)]
     lo = other.vertices.min(0) - PENETRATION_ALLOWANCE
     hi = other.vertices.max(0) + PENETRATION_ALLOWANCE
+    other.tree()  # built here: ``rows`` may run on another thread
+    other.closed()
 
     def rows(X_CM: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         X_OM = X_OC @ X_CM
@@ -1014,6 +1025,9 @@ def initialise(
     occluder: npt.ArrayLike | None = None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] | None = None,
+    polish_below: float = np.inf,
+    polish_finalists: bool = False,
+    pool: Executor | None = None,
 ) -> Registration:
     """Find a model's pose from its observed points without an initial guess.
 
@@ -1055,10 +1069,24 @@ def initialise(
         frame); run from the :data:`POLISHED` most plausible candidates once they are
         scored, its results compete with the refined ones. Without the colour, the
         closest-point ICP of the search is pulled by the hand's points near the part.
+    polish_below : float, optional
+        ``polish`` runs only when the most plausible refined candidate ranks below this
+        (default: always). With the colour the closest-point refinement is usually good,
+        but the hand's and the table's points near the part can leave the true candidate
+        a few millimetres off and ranked below a wrong one (dev variant 213, a T-peg held
+        by a hand: 2.6 mm off, plausibility 0.935 against 0.937 for one turned 85 deg about
+        its axis; polished 0.956).
+    polish_finalists : bool, optional
+        ``polish`` the ``keep`` candidates refined on all points (from their refined poses)
+        instead of the :data:`POLISHED` most plausible ones before that refinement (which
+        the hand's points can pull off the part without the colour).
     rank : callable, optional
         ``rank(registration) -> tuple``, greater is better: how candidates are ranked
         (default :func:`plausibility`; :func:`whole_plausibility` for an object that is all
         of its points).
+    pool : Executor, optional
+        A thread for half of the batched ICP's candidates (:func:`batch_icp`) and the
+        candidates' fitness queries (:func:`evaluate`) meanwhile: the same result.
 
     Returns
     -------
@@ -1076,7 +1104,9 @@ def initialise(
              "obstacle": obstacle, "free_space_tolerance": free_space_tolerance,
              "occluder": occluder}  # fmt: skip
     search: dict[str, Any] = {"loss": loss, "max_points": max_points, "keep": keep, "rng": rng,
-              "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank}  # fmt: skip
+              "symmetry_rotations": symmetry_rotations, "polish": polish, "rank": rank,
+              "polish_below": polish_below, "polish_finalists": polish_finalists,
+              "pool": pool}  # fmt: skip
     found = centres(P, model.diameter)
     if len(found) == 1:
         return _search(P, model, score, **search)
@@ -1141,6 +1171,9 @@ def _search(
     symmetry_rotations: npt.ArrayLike | None,
     polish: Callable[[FloatArray], Registration | None] | None = None,
     rank: Callable[[Registration], tuple[float, float]] = plausibility,
+    polish_below: float = np.inf,
+    polish_finalists: bool = False,
+    pool: Executor | None = None,
 ) -> Registration:
     """Run the coarse-to-fine search of :func:`initialise` about the centroid of ``P``."""
     from apo.perception.search import batch_icp, distinct_poses, inlier_fraction, voxel_subsample
@@ -1165,17 +1198,21 @@ def _search(
     d0 = model.diameter / 4
     for dist in (d0, d0 / 3):  # coarse: every candidate, few points, sparse samples
         dist = max(dist, 2 * inlier_distance)
-        T = batch_icp(few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss)
+        T = batch_icp(
+            few, model, T, distance=dist, scale=dist / 2, iterations=10, loss=loss, pool=pool
+        )
     # The best distinct results on more points; then scored on the depth image.
     order = np.argsort(-inlier_fraction(sub, model, T, 2 * inlier_distance), kind="stable")
     T = T[distinct_poses(T[order], model, symmetry_rotations, limit=CANDIDATES)]
     for dist in (d0 / 9, d0 / 27):
         dist = max(dist, 2 * inlier_distance)
-        T = batch_icp(sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss)
-    scored = [evaluate(sub, model, invert_pose(t), **score) for t in T]
+        T = batch_icp(
+            sub, model, T, distance=dist, scale=inlier_distance, iterations=15, loss=loss, pool=pool
+        )
+    scored = [evaluate(sub, model, invert_pose(t), pool=pool, **score) for t in T]
     ranked_all = sorted(range(len(T)), key=lambda k: rank(scored[k]), reverse=True)
     ranked = ranked_all[:keep]
-    polished = [] if polish is None else [polish(invert_pose(t)) for t in T[ranked_all[:POLISHED]]]
+    to_polish = T[ranked_all[:POLISHED]]
     # The most confident, on all points (at most REFINE_POINTS, evenly spread), dense samples.
     T = T[ranked]
     d1 = model.diameter / 12
@@ -1184,7 +1221,10 @@ def _search(
         last = k == 2
         T = batch_icp(
             full, model, T, distance=dist, scale=inlier_distance if last else dist / 2,
-            iterations=30, dense=last, loss=loss,
+            iterations=30, dense=last, loss=loss, pool=pool,
         )  # fmt: skip
-    best = [evaluate(full, model, invert_pose(t), **score) for t in T]
-    return max(best + [r for r in polished if r is not None], key=rank)
+    best = [evaluate(full, model, invert_pose(t), pool=pool, **score) for t in T]
+    if polish is not None and rank(max(best, key=rank))[0] < polish_below:
+        starts = [r.X_CM for r in best] if polish_finalists else [invert_pose(t) for t in to_polish]
+        best += [r for r in map(polish, starts) if r is not None]
+    return max(best, key=rank)

@@ -17,7 +17,7 @@ correspondence distance, a robust kernel: Tukey's biweight by default), in numpy
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -26,6 +26,8 @@ from apo.perception.projective import tukey_weights
 from apo.typing import FloatArray
 
 if TYPE_CHECKING:
+    from concurrent.futures import Executor
+
     from apo.perception.register import ModelCloud
 
 __all__ = ["batch_icp", "centres", "distinct_poses", "inlier_fraction", "voxel_subsample"]
@@ -89,6 +91,7 @@ def batch_icp(
     dense: bool = False,
     loss: str = "tukey",
     tol: float = 1e-7,
+    pool: Executor | None = None,
 ) -> FloatArray:
     """Advance K point-to-plane ICPs of the same points at once; return the K transforms.
 
@@ -113,6 +116,10 @@ def batch_icp(
         Robust kernel.
     tol : float, optional
         Convergence: largest step (radians + metres) below this.
+    pool : Executor, optional
+        Half the candidates are advanced on a thread of it meanwhile (the k-d queries and
+        numpy's work on the candidates' arrays release the GIL): the same transforms, bit
+        for bit (each candidate's ICP is its own: its steps, its convergence).
 
     Returns
     -------
@@ -120,7 +127,13 @@ def batch_icp(
     """
     P = np.asarray(points, dtype=np.float64)
     out = np.array(T, dtype=np.float64, copy=True).reshape(-1, 4, 4)
-    tree = model.tree(dense)
+    tree = model.tree(dense)  # built here, never by two threads
+    kw: dict[str, Any] = {"distance": distance, "scale": scale, "iterations": iterations,
+                          "dense": dense, "loss": loss, "tol": tol}  # fmt: skip
+    if pool is not None and len(out) >= 2:
+        half = (len(out) + 1) // 2
+        rest = pool.submit(batch_icp, P, model, out[half:], **kw)
+        return np.concatenate([batch_icp(P, model, out[:half], **kw), rest.result()])
     samples = model.dense_points if dense else model.points
     normals = model.dense_normals if dense else model.normals
     active = np.arange(len(out))

@@ -545,6 +545,7 @@ class _Scene:
     env_depth: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     cache: dict[int, _Frame] = field(default_factory=dict)  # frames decoded during the setup
     prefetch: dict[int, Future[_Frame]] = field(default_factory=dict)  # being decoded
+    pool: Executor | None = None  # the setup's threads: the environment's search uses one
 
     @property
     def camera(self) -> Camera:
@@ -612,7 +613,7 @@ def _find_environment(scene: _Scene, XE0: FloatArray | None) -> None:
             r = initialise(
                 env_pts, E, depth=median_depth, camera=cam, seed=opt.seed,
                 symmetry_rotations=[s.S[:3, :3] for s in scene.syms_E],
-                rank=whole_plausibility, **kw,
+                rank=whole_plausibility, pool=scene.pool, **kw,
             )  # fmt: skip
         if env is None or whole_plausibility(r) > whole_plausibility(env):
             env, env_points = r, env_pts
@@ -982,7 +983,8 @@ class _Tracker:
             r = initialise(
                 pts, self.G, depth=d, camera=c, seed=self.opt.seed, obstacle=self.obstacle,
                 symmetry_rotations=[s.S[:3, :3] for s in self.scene.syms_G], occluder=env_d,
-                polish=polish if self.clutter else None,
+                polish=polish, polish_below=np.inf if self.clutter else self.opt.good_confidence,
+                polish_finalists=not self.clutter, pool=self.pool,
                 **self.scene.settings(pts),
             )  # fmt: skip
             if best is None or plausibility(r) > plausibility(best):
@@ -1090,8 +1092,9 @@ def track_frames(
         prefetch = _prefetch(pool, src, opt)
         try:
             scene = _open_scene(src, grasped_mesh, environment_mesh, units, opt)
-            scene.prefetch = prefetch
+            scene.prefetch, scene.pool = prefetch, pool
             _find_environment(scene, XE0)
+            scene.pool = None  # shut down with this block
         finally:  # on an error, the frames not started yet are not decoded
             for f in prefetch.values():
                 f.cancel()

@@ -44,6 +44,7 @@ __all__ = [
     "element_record",
     "rejected_runs",
     "state_kind",
+    "state_runs",
     "transition_record",
 ]
 
@@ -204,6 +205,7 @@ def build_states(
     observed: IntArray,
     corrected: Corrected,
     candidates: Sequence[CandidateState | None],
+    named: tuple[list[tuple[int, int]], list[str]] | None = None,
 ) -> tuple[list[tuple[int, int]], list[str], StateTable]:
     """Make runs of frames with the same chosen state the task's states A, B, ...
 
@@ -212,9 +214,9 @@ def build_states(
     letter and ``same_as``. Returns the runs ``(first, last)``, their ids and the states, as
     a :class:`apo.task.StateTable`: a row of arrays per state, and per candidate one
     :func:`state_kind` (its elements placed at a state's pose when the state is read).
+    ``named``: the runs and ids of ``path`` (:func:`state_runs`), if made already.
     """
-    runs = run_bounds(path)
-    ids = state_letters(len(runs))
+    runs, ids = state_runs(path) if named is None else named
     n = len(runs)
     poses = np.empty((n, 4, 4))
     pose_frames = np.empty(n, dtype=np.int64)
@@ -238,6 +240,12 @@ def build_states(
     t = np.asarray(times, dtype=np.float64)
     table = StateTable(ids, bounds, t[bounds], poses, kind, kinds, pose_frames, converged, same_as)
     return runs, ids, table
+
+
+def state_runs(path: IntArray) -> tuple[list[tuple[int, int]], list[str]]:
+    """Return the runs ``(first, last)`` of equal chosen states and their ids A, B, ..."""
+    runs = run_bounds(path)
+    return runs, state_letters(len(runs))
 
 
 def state_kind(cand: CandidateState) -> StateKind:

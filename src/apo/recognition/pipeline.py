@@ -30,7 +30,7 @@ from apo.contact import ContactElement, ContactFinder
 from apo.errors import InputFormatError
 from apo.geometry import Polyhedron
 from apo.recognition.analysis import Analysis, analyse_needed
-from apo.recognition.build import build_states, build_transitions, rejected_runs
+from apo.recognition.build import build_states, build_transitions, rejected_runs, state_runs
 from apo.recognition.contacts import Observations, observe
 from apo.recognition.correction import Corrected, correct_by_label
 from apo.recognition.distances import StreamedDistances
@@ -54,7 +54,7 @@ from apo.recognition.types import (
     Scene,
     SegmentationCosts,
 )
-from apo.task import UNITS, ModelRef, TaskModel, state_spans
+from apo.task import UNITS, ModelRef, Rejected, TaskModel, state_spans
 
 __all__ = ["recognize", "recognize_frames"]
 
@@ -148,6 +148,7 @@ def recognize(
         noise=noise,
         floor_share=floor_share,
         jobs=jobs,
+        keep_costs=False,
     ).task
 
 
@@ -167,10 +168,14 @@ def recognize_frames(
     noise: tuple[float, float] | None = None,
     floor_share: float | None = None,
     jobs: int | None = None,
+    keep_costs: bool = True,
 ) -> Recognition:
     """Recognise a demonstration; return the task model and per-frame diagnostics.
 
-    Parameters are those of :func:`recognize`.
+    Parameters are those of :func:`recognize`, and ``keep_costs``: False leaves
+    ``Recognition.costs`` and ``cost_columns`` empty, shapes (N, 0) and (0,) (what
+    ``apo analyze`` does: no output reads them), and frees them before the correction
+    (8 bytes a frame per analysed candidate; ``docs/recognition.md``, "Session 8: memory").
 
     Returns
     -------
@@ -183,7 +188,7 @@ def recognize_frames(
     once = partial(
         _recognise_once, grasped, environment, t, X, costs=costs or SegmentationCosts(),
         memoize=memoize, progress=progress, units=units, models=models, source=source,
-        floor_share=floor_share, jobs=jobs,
+        floor_share=floor_share, jobs=jobs, keep_costs=keep_costs,
     )  # fmt: skip
     rec = once(threshold, est)
     if threshold is not None or noise is not None:
@@ -258,6 +263,7 @@ def _recognise_once(
     source: str,
     floor_share: float | None = None,
     jobs: int | None = None,
+    keep_costs: bool = True,
 ) -> Recognition:
     """One pass of the stages at one threshold and noise level."""
     tm: dict[str, float] = {}
@@ -269,8 +275,12 @@ def _recognise_once(
     path0, own, seen = _timed(tm, "segmentation", first_pass, scene, observed, dists)
     an = _timed(tm, "analysis", analyse_needed, scene, observed, own, path0)
     seg = _timed(tm, "segmentation", segment, scene, an, dists, observed, seen)
-    del dists, seen  # the observed elements' distances: not needed any more
+    del dists, seen, path0, own  # the first pass's results: not needed any more
     path, obs_c = seg.path, seg.observed
+    # the rejected runs read the costs: made now, the costs can go before the correction
+    named = _timed(tm, "task", rejected_of, scene, an, seg)
+    if not keep_costs:
+        seg.costs, seg.columns = np.zeros((scene.n, 0)), np.zeros(0, dtype=np.int64)
     chosen = an.states(observed)
     corrected = _timed(
         tm, "correction", partial(correct_by_label, jobs=jobs), grasped, environment, X,
@@ -278,9 +288,9 @@ def _recognise_once(
     )  # fmt: skip
     t4 = time.perf_counter()
     task = build_task(
-        scene, t, path, obs_c, corrected, an, seg, units=units, models=models, source=source
+        scene, t, path, obs_c, corrected, an, named, units=units, models=models, source=source
     )
-    tm["task"] = time.perf_counter() - t4
+    tm["task"] = tm["task"] + time.perf_counter() - t4
     tm["total"] = time.perf_counter() - t0
     task = replace(task, extra={**task.extra, "noise": noise_record(est, units)})
     rec = _result(task, observed, an, seg, corrected, t, X, tm)
@@ -355,6 +365,24 @@ def make_scene(
     return Scene(grasped, environment, X, finder, exact, costs, out, scale)
 
 
+#: The runs ``(first, last)`` of the chosen path, their ids, the rejected runs.
+Named = tuple[list[tuple[int, int]], list[str], list[Rejected]]
+
+
+def rejected_of(scene: Scene, an: Analysis, seg: Segmentation) -> Named:
+    """Return the runs of the chosen path, their ids and the observed runs it replaced.
+
+    Made from the segmentation alone, before the correction: the costs that the rejected
+    runs' reasons read (``seg.costs``) can then be freed before the correction's per-frame
+    arrays are made; :func:`build_task` names the states with the same runs and ids.
+    """
+    runs, ids = state_runs(seg.path)
+    keys, cands = an.keys, an.candidates
+    rejected = rejected_runs(seg.observed, seg.path, runs, ids, keys, cands, an.feasible, seg,
+                             scene.costs)  # fmt: skip
+    return runs, ids, rejected
+
+
 def build_task(
     scene: Scene,
     times: FloatArray,
@@ -362,18 +390,19 @@ def build_task(
     obs_c: IntArray,
     corrected: Corrected,
     an: Analysis,
-    seg: Segmentation,
+    named: Named,
     *,
     units: str,
     models: tuple[ModelRef, ModelRef] | None,
     source: str,
 ) -> TaskModel:
-    """Build the task model: states, transitions and rejected runs of the chosen path."""
-    runs, ids, states = build_states(times, path, obs_c, corrected, an.candidates)
+    """Build the task model: states and transitions of the chosen path, rejected runs.
+
+    ``named`` (:func:`rejected_of`): the path's runs, their ids and the rejected runs.
+    """
+    runs, ids, rejected = named
+    runs, ids, states = build_states(times, path, obs_c, corrected, an.candidates, (runs, ids))
     transitions = build_transitions(runs, ids, path, an.candidates, an.feasible)
-    rejected = rejected_runs(
-        obs_c, path, runs, ids, an.keys, an.candidates, an.feasible, seg, scene.costs
-    )
     G, E = scene.grasped, scene.environment
     g_ref, e_ref = models or (ModelRef(G.name, None, G.name), ModelRef(E.name, None, E.name))
     return TaskModel(

@@ -64,6 +64,26 @@ def frame_blocks(n: int, size: int | None = None) -> Iterator[tuple[int, int]]:
         yield a, min(n, a + size)
 
 
+#: Cost cells (frames x candidates) of a block at most: a block has ``BLOCK_FRAMES`` frames,
+#: fewer where the candidates are many (a long noisy demonstration shows more observed
+#: states: 227 at 30,000 synthetic frames, whose blocks of 1,024 frames made 1.9 MB arrays
+#: of costs, several at once). The same numbers whatever the block (row by row).
+BLOCK_CELLS = 64 * 1024
+
+#: Frames of a block at least, however many the candidates.
+MIN_BLOCK_FRAMES = 128
+
+
+def cost_block(candidates: int) -> int:
+    """Frames of a block of costs of ``candidates`` columns (``BLOCK_CELLS``).
+
+    >>> cost_block(8), cost_block(227), cost_block(10_000)
+    (1024, 288, 128)
+    """
+    fit = BLOCK_CELLS // max(1, candidates)
+    return min(BLOCK_FRAMES, max(MIN_BLOCK_FRAMES, fit - fit % 32))
+
+
 #: The distances are computed over spans of ``DISTANCE_BLOCKS`` cost blocks of frames
 #: (:class:`~apo.recognition.distances.StreamedDistances`): a few numpy calls per element
 #: and span, whatever its length.
@@ -124,7 +144,7 @@ def first_pass(
     enc = enclosed_frames(observed.keys, labels, scene.outliers)
     lay = EmissionLayout(observed.keys, [s.touching for s in observed.states])
     seen = ObservedDistances(lay, labels)
-    for a, b in frame_blocks(scene.n, block):
+    for a, b in frame_blocks(scene.n, cost_block(len(observed.keys)) if block is None else block):
         lab = labels[a:b]
         dist = dists.rows(a, b, lay.ukeys, distance_span())
         seen.keep(lab, dist)
@@ -181,7 +201,7 @@ def segment(
     enc = enclosed_frames(observed.keys, labels, scene.outliers)
     lay = EmissionLayout(an.keys, [s.touching for s in states])
     blocks = _SecondPassDistances(dists, seen, lay, an)
-    for a, b in frame_blocks(scene.n, block):
+    for a, b in frame_blocks(scene.n, cost_block(len(an.keys)) if block is None else block):
         e = candidate_costs(
             blocks.at(a, b, labels[a:b]), lay, an.candidates, an.bridges,
             labels[a:b], w, start=a, enclosed=enc[a:b],

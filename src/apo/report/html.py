@@ -215,7 +215,8 @@ def _frames_data(track: FrameTrack, state_ids: list[str], scale: float) -> dict[
     """Per-frame arrays of the demonstration track (decimated where long)."""
     index = {sid: i for i, sid in enumerate(state_ids)}
     try:
-        s = np.array([index[sid] for sid in track.state_ids], dtype=np.int64)
+        ids = track.state_ids  # no list of a Python int per frame on the way
+        s = np.fromiter((index[sid] for sid in ids), dtype=np.int64, count=len(ids))
     except KeyError as exc:
         raise ApoError(f"per-frame data name state {exc.args[0]!r}, which the task lacks") from None
     keep = replay_indices(s)
@@ -506,12 +507,10 @@ def _script_pieces(data: Mapping[str, Any], task_json: Any = None) -> Iterator[b
         text = json.dumps(data, separators=(",", ":"), allow_nan=False)
         yield _escape_script(text.encode("utf-8"))
         return
-    rest = json.dumps(
-        {k: v for k, v in data.items() if k != "task"}, separators=(",", ":"), allow_nan=False
-    )
-    end = len(rest) - 1  # the closing brace: the task follows
-    for a in range(0, end, SCRIPT_CHUNK_CHARS):  # no whole copy of the text, encoded
-        yield _escape_script(rest[a : min(end, a + SCRIPT_CHUNK_CHARS)].encode("utf-8"))
+    rest = {k: v for k, v in data.items() if k != "task"}
+    for piece in _json_pieces(rest, SCRIPT_SPLIT_DEPTH, last=False):  # the task follows
+        for a in range(0, len(piece), SCRIPT_CHUNK_CHARS):  # no whole copy of the text
+            yield _escape_script(piece[a : a + SCRIPT_CHUNK_CHARS].encode("utf-8"))
     yield b',"task":'
     if isinstance(task_json, str):
         yield _escape_script(task_json.strip().encode("utf-8"))
@@ -523,6 +522,33 @@ def _script_pieces(data: Mapping[str, Any], task_json: Any = None) -> Iterator[b
 
 #: Characters of the report's data (all but the task) encoded and escaped at a time.
 SCRIPT_CHUNK_CHARS = 1 << 18
+
+#: Levels of the report's data whose objects are written member by member
+#: (:func:`_json_pieces`): ``frames`` -> ``observed`` -> its ``b64`` text, alone.
+SCRIPT_SPLIT_DEPTH = 3
+
+
+def _json_pieces(value: Any, depth: int, *, last: bool = True) -> Iterator[str]:
+    """Yield ``json.dumps(value, separators=(",", ":"), allow_nan=False)`` in pieces.
+
+    Objects (string keys) down to ``depth`` levels are written member by member, so that
+    the text of the report's data is never made whole (a long demonstration's packed
+    frames are megabytes) besides the data itself; the same text, joined. ``last=False``
+    leaves out the outer object's closing brace.
+
+    >>> d = {"a": {"b": [1, 2.5], "c": {"d": "x"}}, "e": None}
+    >>> "".join(_json_pieces(d, 2)) == json.dumps(d, separators=(",", ":"))
+    True
+    """
+    if depth <= 0 or not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        yield json.dumps(value, separators=(",", ":"), allow_nan=False)
+        return
+    yield "{"
+    for i, (k, v) in enumerate(value.items()):
+        yield ("," if i else "") + json.dumps(k) + ":"
+        yield from _json_pieces(v, depth - 1)
+    if last:
+        yield "}"
 
 
 def _escape_script(b: bytes) -> bytes:

@@ -66,7 +66,7 @@ def frames_from_recognition(
 
     return FrameTrack(
         times=np.asarray(rec.times, dtype=np.float64),
-        state_ids=list(rec.state_of_frame),
+        state_ids=rec.state_of_frame,  # read only: no copy
         X_observed=poses(X_observed),
         X_corrected=poses(X_corrected),
         residual_before=np.asarray(rec.residual_before, dtype=np.float64),
