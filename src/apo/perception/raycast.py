@@ -58,6 +58,10 @@ _UP = {"peg_in_hole_2d": (0.0, 1.0, 0.0), "square_peg_in_hole": (0.0, 0.0, 1.0)}
 """Up in each demonstration's environment frame before its random placement."""
 
 
+PALM = 0.085
+"""Width of a hand across its four fingers, metres."""
+
+
 @dataclass(frozen=True)
 class Conditions:
     """How one recording is made (metres, degrees, colours linear in [0, 1])."""
@@ -80,6 +84,7 @@ class Conditions:
     parts: tuple[float, float, float]
     hand: bool
     skin: tuple[float, float, float]
+    finger: float
     background: bool
     blobs: int
     seed: int
@@ -131,10 +136,16 @@ def random_conditions(seed: int, *, demo: str | None = None) -> Conditions:
         table=table, striped=bool(rng.random() < 0.4),
         parts=part_choices[int(rng.integers(len(part_choices)))],
         hand=bool(rng.random() < 0.5),
-        skin=(float(rng.uniform(0.45, 0.95)), float(rng.uniform(0.3, 0.7)),
-              float(rng.uniform(0.2, 0.55))),
+        skin=_skin(rng), finger=float(rng.uniform(0.010, 0.020)),
         background=bool(rng.random() < 0.5), blobs=int(rng.integers(0, 12)), seed=seed,
     )  # fmt: skip
+
+
+def _skin(rng: np.random.Generator) -> tuple[float, float, float]:
+    """Return a skin tone (linear RGB): red above green above blue, light to dark."""
+    r = float(rng.uniform(0.25, 0.9))
+    g = r * float(rng.uniform(0.6, 0.8))
+    return r, g, g * float(rng.uniform(0.7, 0.9))
 
 
 def _demo(c: Conditions) -> tuple[SyntheticDemo, FloatArray]:
@@ -179,11 +190,14 @@ def _box(lo: FloatArray, hi: FloatArray) -> Mesh:
     return np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
 
 
-def _hand(grasped: Mesh, up_G: FloatArray, away_G: FloatArray) -> list[Mesh]:
+def _hand(grasped: Mesh, up_G: FloatArray, away_G: FloatArray, finger: float) -> list[Mesh]:
     """Return a hand over the grasped part's top fifth and a forearm (grasped frame).
 
-    The forearm rises at 30 degrees from the hand's top towards ``away_G`` (horizontal,
-    away from the camera: the person stands across the table).
+    The hand is a block around the top fifth (at most :data:`PALM` of it along each
+    axis, centred: the ends of a wide crossbar stick out), ``finger`` thick on the sides
+    (10-20 mm: fingers) and twice that on top (the palm); the forearm rises at 30 degrees from the
+    hand's top towards ``away_G`` (horizontal, away from the camera: the person stands
+    across the table).
     """
     import trimesh
 
@@ -192,11 +206,14 @@ def _hand(grasped: Mesh, up_G: FloatArray, away_G: FloatArray) -> list[Mesh]:
     sign = float(np.sign(up_G[axis]))
     top = V[:, axis] * sign
     keep = top >= top.max() - 0.2 * (top.max() - top.min())
-    lo, hi = V[keep].min(axis=0) - 0.006, V[keep].max(axis=0) + 0.006
+    lo, hi = V[keep].min(axis=0), V[keep].max(axis=0)
+    mid = (lo + hi) / 2  # a hand is at most PALM wide along the part: wider ends stick out
+    lo, hi = np.maximum(lo, mid - PALM / 2), np.minimum(hi, mid + PALM / 2)
+    lo, hi = lo - finger, hi + finger
     if sign > 0:
-        hi[axis] += 0.012
+        hi[axis] += finger
     else:
-        lo[axis] -= 0.012
+        lo[axis] -= finger
     start = (lo + hi) / 2
     start[axis] = hi[axis] if sign > 0 else lo[axis]
     direction = up_G * math.sin(math.radians(30.0)) + away_G * math.cos(math.radians(30.0))
@@ -379,7 +396,7 @@ def render_independent(c: Conditions, out_dir: str | Path) -> IndependentRecordi
     r = _Renderer(c, X_EC, rng)
     static, albedo = [_table(E, up), E], [c.table, c.parts]
     X = np.asarray(demo.X_EG_true, dtype=np.float64)
-    extra = _hand(G, *_hand_directions(X[0], X_EC, up, rng)) if c.hand else []
+    extra = _hand(G, *_hand_directions(X[0], X_EC, up, rng), c.finger) if c.hand else []
     for k, X_EG in enumerate(X):
         moving = [_moved(m, X_EG) for m in [G, *extra]]
         scene = _Scene([*static, *moving], [*albedo, c.parts, *[c.skin] * len(extra)])
