@@ -26,7 +26,8 @@ pose error of ``X_EG`` against the truth's symmetric twin nearest it over the wh
 (one twin per sequence, so a flip is charged), the frames where another twin is nearer
 (flips), re-initialisations, lost frames, frames/s of the whole ``apo track`` command (start,
 setup and global searches included) and whether the ``task.json`` that ``apo analyze FRAMES``
-writes is the true task model (states and sub-skills of ``recognize`` on the true poses).
+writes is the true task model (every state's Fig. 25 numbers, the sub-skills and critical marks of
+``recognize`` on the true poses: :func:`same_task_model`).
 Speed is that of the whole commands a user runs, each in its own process (interpreter
 start, imports, model files read, outputs written): ``apo track FRAMES`` (whose CSV gives
 the poses measured) and ``apo analyze FRAMES``, wall clock and CPU time (all threads, from
@@ -165,6 +166,21 @@ def _twin_errors(
     return per[k][1], per[k][2], flips
 
 
+def same_task_model(got: Any, truth: Any) -> bool:
+    """Whether two task models are the same: every state's id, singular flag and Fig. 25
+    numbers, every transition's sub-skills (kind, space, type) and critical mark."""
+
+    def key(task: Any) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+        states = [(s.id, bool(s.singular), tuple(int(v) for v in s.fig25)) for s in task.states]
+        moves = [
+            (bool(t.critical), tuple((k.kind, k.space, k.type) for k in t.subskills))
+            for t in task.transitions
+        ]
+        return states, moves
+
+    return key(got) == key(truth)
+
+
 def _command(args: list[str]) -> tuple[float, float]:
     """Run ``python -m apo.cli ARGS``; return its wall-clock and CPU seconds (all threads)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -222,9 +238,7 @@ def run_variant(seed: int, frames: int, colour: str = "auto") -> dict[str, Any]:
         X_EG, d.X_EG_true, symmetries(*r.grasped), symmetries(*r.environment)
     )
     truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
-    same = [s.id for s in got.states] == [s.id for s in truth.states] and (
-        got.subskill_sequence() == truth.subskill_sequence()
-    )
+    same = same_task_model(got, truth)
     return {
         "seed": seed,
         "colour": colour,

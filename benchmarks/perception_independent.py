@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from perception import _command, _tracked_poses, _twin_errors
+from perception import _command, _tracked_poses, _twin_errors, same_task_model
 
 
 def _failed(exc: subprocess.CalledProcessError) -> str:
@@ -73,9 +73,7 @@ def run_recording(seed: int) -> dict[str, Any]:
         X_EG, d.X_EG_true, symmetries(*r.grasped), symmetries(*r.environment)
     )
     truth = recognize(d.grasped, d.environment, d.times, d.X_EG_true)
-    row["true_task_model"] = [s.id for s in got.states] == [s.id for s in truth.states] and (
-        got.subskill_sequence() == truth.subskill_sequence()
-    )
+    row["true_task_model"] = same_task_model(got, truth)
     row["states"] = [len(got.states), len(truth.states)]
     row["frames"] = len(d.times)
     row["lost"] = int((~np.isfinite(X_EG[:, 0, 0])).sum())
