@@ -309,7 +309,6 @@ class _Renderer:
         cam_up = -X_EC[:3, 1]
         self.light = cam_up * 0.8 + X_EC[:3, 2] * -0.6
         self.light /= np.linalg.norm(self.light)
-        self.cz = X_EC[:3, 2]
 
     def frame(self, scene: _Scene, table_stripes: bool) -> tuple[FloatArray, FloatArray]:
         """Depth (metres, 0 = none) and linear RGB of one frame."""
