@@ -20,12 +20,9 @@ from apo.perception.raycast import (
 
 
 def _small(seed: int, **changes: object) -> object:
-    """A 160x120 version of a seed's conditions (focal length and centre scaled by 1/4)."""
+    """A 160x120 version of a seed's conditions (the camera scaled by 1/4)."""
     c = random_conditions(seed)
-    return dataclasses.replace(
-        c, width=160, height=120, fx=c.fx / 4, fy=c.fy / 4, cx=(c.cx + 0.5) / 4 - 0.5,
-        cy=(c.cy + 0.5) / 4 - 0.5, **changes,
-    )  # fmt: skip
+    return dataclasses.replace(c, camera=c.camera.scaled(0.25), **changes)
 
 
 def _distance_to_surface(points: np.ndarray, meshes: list) -> np.ndarray:
@@ -52,8 +49,7 @@ def test_depth_is_the_scene_within_the_noise(tmp_path, seed):
     assert cam["depth_scale"] == 0.001
     k = len(frames) // 2
     z = frames.depth(k).astype(np.float64)
-    v, u = np.nonzero(z > 0)
-    P_C = np.column_stack([(u - c.cx) / c.fx * z[v, u], (v - c.cy) / c.fy * z[v, u], z[v, u]])
+    P_C = frames.camera.backproject(z)
     X_EC = np.linalg.inv(rec.X_CE)
     P_E = P_C @ X_EC[:3, :3].T + X_EC[:3, 3]
     X_EG = rec.demo.X_EG_true[k]
@@ -82,6 +78,6 @@ def test_same_seed_same_recording_and_the_hand_occludes(tmp_path):
 def test_conditions_vary_with_the_seed():
     cs = [random_conditions(s) for s in range(40)]
     assert {c.demo for c in cs} == {"peg_in_hole_2d", "square_peg_in_hole"}
-    assert len({round(c.fx) for c in cs}) > 30
+    assert len({round(c.camera.fx) for c in cs}) > 30
     assert any(c.hand for c in cs) and not all(c.hand for c in cs)
     assert min(c.distance for c in cs) < 0.45 and max(c.distance for c in cs) > 0.85

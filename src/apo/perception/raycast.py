@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from apo.perception.camera import Camera, write_camera
 from apo.perception.render import pose_looking_at
 from apo.typing import FloatArray
 
@@ -68,12 +69,7 @@ class Conditions:
 
     demo: str
     demo_seed: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+    camera: Camera
     distance: float
     elevation: float
     azimuth: float
@@ -92,7 +88,7 @@ class Conditions:
     def label(self) -> str:
         """Short description for tables."""
         return (
-            f"{self.demo} f={self.fx:.0f} {self.distance:.2f}m {self.elevation:.0f}deg "
+            f"{self.demo} f={self.camera.fx:.0f} {self.distance:.2f}m {self.elevation:.0f}deg "
             f"c={self.noise * 1e3:.1f} b={self.baseline * 1e3:.0f}mm"
             f"{' striped' if self.striped else ''}{' hand' if self.hand else ''}"
             f"{' bg' if self.background else ''}"
@@ -127,9 +123,9 @@ def random_conditions(seed: int, *, demo: str | None = None) -> Conditions:
     return Conditions(
         demo=demo or DEMOS[int(rng.integers(len(DEMOS)))],
         demo_seed=int(rng.integers(1 << 30)),
-        fx=f, fy=f * float(rng.uniform(0.995, 1.005)),
-        cx=319.5 + float(rng.uniform(-12, 12)), cy=239.5 + float(rng.uniform(-12, 12)),
-        width=640, height=480,
+        camera=Camera(f, f * float(rng.uniform(0.995, 1.005)),
+                      319.5 + float(rng.uniform(-12, 12)), 239.5 + float(rng.uniform(-12, 12)),
+                      640, 480, depth_scale=0.001),
         distance=float(rng.uniform(0.3, 1.0)), elevation=float(rng.uniform(20.0, 70.0)),
         azimuth=float(rng.uniform(-60.0, 60.0)),
         noise=float(rng.uniform(1e-3, 6e-3)), baseline=float(rng.uniform(0.04, 0.08)),
@@ -277,7 +273,7 @@ class _Scene:
         return t, ids, ans["primitive_normals"].numpy().astype(np.float64)
 
 
-def _ray_directions(c: Conditions, X_EC: FloatArray, offset: float) -> FloatArray:
+def _ray_directions(c: Camera, X_EC: FloatArray, offset: float) -> FloatArray:
     """Directions (H, W, 3) in the environment frame, camera ``z`` component 1."""
     u, v = np.meshgrid(np.arange(c.width) + offset, np.arange(c.height) + offset)
     d = np.stack([(u - c.cx) / c.fx, (v - c.cy) / c.fy, np.ones_like(u, dtype=np.float64)], -1)
@@ -304,7 +300,7 @@ class _Renderer:
     def __init__(self, c: Conditions, X_EC: FloatArray, rng: np.random.Generator) -> None:
         self.c, self.X_EC, self.rng = c, X_EC, rng
         self.origin = X_EC[:3, 3]
-        self.dirs = [_ray_directions(c, X_EC, o) for o in (-0.25, 0.25)]
+        self.dirs = [_ray_directions(c.camera, X_EC, o) for o in (-0.25, 0.25)]
         self.projector = X_EC[:3, 3] + c.baseline * X_EC[:3, 0]
         cam_up = -X_EC[:3, 1]
         self.light = cam_up * 0.8 + X_EC[:3, 2] * -0.6
@@ -344,7 +340,7 @@ class _Renderer:
 
     def _shadowed(self, scene: _Scene, depth: FloatArray) -> FloatArray:
         """Depth dropped where the projector does not light the surface point."""
-        centre = _ray_directions(self.c, self.X_EC, 0.0)
+        centre = _ray_directions(self.c.camera, self.X_EC, 0.0)
         P = self.origin + depth[..., None] * centre
         d = P - self.projector
         length = np.linalg.norm(d, axis=-1)
@@ -355,32 +351,33 @@ class _Renderer:
         return np.where(lit, depth, 0.0)
 
     def _noisy(self, depth: FloatArray, dark: npt.NDArray[np.bool_]) -> FloatArray:
-        """Disparity noise (half smoothed over ~3 px), blobs and dark-surface dropouts, mm."""
+        """Disparity noise (half smoothed over ~3 px), blobs and dark-surface dropouts."""
         from scipy.ndimage import gaussian_filter
 
-        c, rng = self.c, self.rng
+        c, cam, rng = self.c, self.c.camera, self.rng
         white = rng.standard_normal(depth.shape)
         smooth = gaussian_filter(rng.standard_normal(depth.shape), 3.0)
         smooth /= smooth.std() + 1e-12
         z = depth + c.noise * depth**2 * (white + smooth) / math.sqrt(2.0)
         drop = (dark & (rng.random(depth.shape) < 0.4)) | (rng.random(depth.shape) < 0.003)
         for _ in range(c.blobs):
-            v, u = rng.integers(0, c.height), rng.integers(0, c.width)
+            v, u = rng.integers(0, cam.height), rng.integers(0, cam.width)
             r = rng.uniform(2.0, 9.0)
-            yy, xx = np.ogrid[: c.height, : c.width]
+            yy, xx = np.ogrid[: cam.height, : cam.width]
             drop |= (yy - v) ** 2 + (xx - u) ** 2 < r * r
-        return np.where(drop | (depth <= 0), 0.0, np.round(z * 1000.0) / 1000.0)
+        return np.where(drop | (depth <= 0), 0.0, z)
 
 
 def _write(
-    rgb_path: Path, depth_path: Path, depth: FloatArray, rgb: FloatArray, rng: np.random.Generator
-) -> None:
-    """8-bit sRGB with sensor noise, 16-bit depth in millimetres (0: none)."""
+    rgb_path: Path, depth_path: Path, depth: FloatArray, rgb: FloatArray, rng: np.random.Generator,
+    depth_scale: float,
+) -> None:  # fmt: skip
+    """8-bit sRGB with sensor noise, 16-bit depth in whole units of ``depth_scale`` (0: none)."""
     from PIL import Image
 
     srgb = np.clip(rgb, 0.0, 1.0) ** (1 / 2.2) * 255 + rng.normal(0.0, 2.0, rgb.shape)
     Image.fromarray(np.clip(srgb, 0, 255).astype(np.uint8)).save(rgb_path)
-    Image.fromarray(np.round(depth * 1000.0).astype(np.uint16)).save(depth_path)
+    Image.fromarray(np.round(depth / depth_scale).astype(np.uint16)).save(depth_path)
 
 
 def render_independent(c: Conditions, out_dir: str | Path) -> IndependentRecording:
@@ -392,6 +389,7 @@ def render_independent(c: Conditions, out_dir: str | Path) -> IndependentRecordi
     for sub in ("rgb", "depth", *(("background",) if c.background else ())):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([c.seed, 12])
+    scale = c.camera.depth_scale
     r = _Renderer(c, X_EC, rng)
     static, albedo = [_table(E, up), E], [c.table, c.parts]
     X = np.asarray(demo.X_EG_true, dtype=np.float64)
@@ -400,14 +398,13 @@ def render_independent(c: Conditions, out_dir: str | Path) -> IndependentRecordi
         moving = [_moved(m, X_EG) for m in [G, *extra]]
         scene = _Scene([*static, *moving], [*albedo, c.parts, *[c.skin] * len(extra)])
         depth, rgb = r.frame(scene, c.striped)
-        _write(out / "rgb" / f"{k:06d}.png", out / "depth" / f"{k:06d}.png", depth, rgb, rng)
+        _write(out / "rgb" / f"{k:06d}.png", out / "depth" / f"{k:06d}.png", depth, rgb, rng, scale)
     if c.background:  # the table alone: the environment is part of the scene to find
         depth, rgb = r.frame(_Scene(static[:1], albedo[:1]), c.striped)
-        _write(out / "background" / "rgb.png", out / "background" / "depth.png", depth, rgb, rng)
+        _write(out / "background" / "rgb.png", out / "background" / "depth.png", depth, rgb, rng,
+               scale)  # fmt: skip
     X_CE: FloatArray = np.asarray(np.linalg.inv(X_EC), dtype=np.float64)
-    camera = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
-              "height": c.height, "depth_scale": 0.001}  # fmt: skip
-    (out / "camera.json").write_text(json.dumps(camera, indent=1) + "\n")
+    write_camera(out / "camera.json", c.camera)
     (out / "timestamps.txt").write_text("".join(f"{t:.6f}\n" for t in demo.times))
     (out.parent / f"{out.name}.conditions.json").write_text(json.dumps(asdict(c), indent=1) + "\n")
     return IndependentRecording(out, demo, G, E, X_CE, c)
