@@ -316,8 +316,12 @@ class Registration:
         ``surface.score * (1 - penetration)`` (:class:`SurfaceCheck`) when a depth image was
         given; without one, ``fitness * (1 - penetration)``. In [0, 1].
         """
+        return self.confidence_at(VISIBLE_MIN)
+
+    def confidence_at(self, visible_min: float) -> float:
+        """:attr:`confidence` with ``visible_min`` (see :meth:`SurfaceCheck.score_at`)."""
         if self.surface is not None:
-            return float(self.surface.score * (1.0 - self.penetration))
+            return float(self.surface.score_at(visible_min) * (1.0 - self.penetration))
         return float(self.fitness * (1.0 - self.violation) * (1.0 - self.penetration))
 
 
@@ -400,9 +404,18 @@ class SurfaceCheck:
         ``outline`` is 1 while :attr:`continued` is at most :data:`CONTINUED_FREE`, falling
         linearly to 0 at :data:`CONTINUED_NONE`.
         """
+        return self.score_at(VISIBLE_MIN)
+
+    def score_at(self, visible_min: float) -> float:
+        """:attr:`score` with ``visible_min`` for :data:`VISIBLE_MIN`.
+
+        A tracker that has seen the part over the last frames knows how much of it the hand
+        holding it hides: a pose hidden about as much is no less sure for it
+        (:func:`apo.perception.track.track_frames`).
+        """
         outline = (CONTINUED_NONE - self.continued) / (CONTINUED_NONE - CONTINUED_FREE)
         outline = min(1.0, max(0.0, outline))
-        return float(self.explained * min(1.0, self.visible / VISIBLE_MIN) * outline)
+        return float(self.explained * min(1.0, self.visible / visible_min) * outline)
 
 
 def _interior(rendered: npt.NDArray[np.float32], jump: float) -> npt.NDArray[np.bool_]:
@@ -1124,7 +1137,7 @@ def initialise(
     return best
 
 
-def plausibility(r: Registration) -> tuple[float, float]:
+def plausibility(r: Registration, visible_min: float = VISIBLE_MIN) -> tuple[float, float]:
     """Rank of poses of one frame: the confidence, less a little for the outline continued.
 
     ``(confidence - CONTINUED_WEIGHT * continued - HIDDEN_WEIGHT * (1 - visible),
@@ -1133,11 +1146,13 @@ def plausibility(r: Registration) -> tuple[float, float]:
     run on past its silhouette (:attr:`SurfaceCheck.continued`, which lowers the
     confidence itself only beyond :data:`CONTINUED_FREE`), and the one with more of its
     surface in view (:attr:`SurfaceCheck.visible`) before one hidden behind something.
+    ``visible_min``: see :meth:`Registration.confidence_at`.
     """
+    c = r.confidence_at(visible_min)
     if r.surface is None:
-        return (r.confidence, r.quality)
+        return (c, r.quality)
     s = r.surface
-    rank = r.confidence - CONTINUED_WEIGHT * s.continued - HIDDEN_WEIGHT * (1.0 - s.visible)
+    rank = c - CONTINUED_WEIGHT * s.continued - HIDDEN_WEIGHT * (1.0 - s.visible)
     return (rank, r.quality)
 
 

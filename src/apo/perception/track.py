@@ -43,6 +43,7 @@ from apo.errors import TrackingLostError
 from apo.perception.environment import refine_environment, surface_depth
 from apo.perception.frames import Camera, FrameSource, masked_median, open_frames
 from apo.perception.register import (
+    VISIBLE_MIN,
     ModelCloud,
     Registration,
     evaluate,
@@ -72,6 +73,11 @@ from apo.symmetry import Symmetry, nearest_twin, symmetries
 from apo.typing import BoolArray, FloatArray
 
 __all__ = ["TrackOptions", "TrackResult", "track_frames"]
+
+VISIBLE_DROP = 0.5
+"""A tracked pose's visible share (:attr:`apo.perception.register.SurfaceCheck.visible`) may
+fall to this fraction of its median over the last tracked frames before it lowers the
+confidence (below :data:`apo.perception.register.VISIBLE_MIN`; see :func:`tracked_visible_min`)."""
 
 
 @dataclass(frozen=True)
@@ -701,6 +707,23 @@ def _environment_colour(scene: _Scene, frames: int = 5) -> ColourModel:
     return learn_colour(np.concatenate(pixels) if pixels else np.zeros((0, 3)))
 
 
+def tracked_visible_min(visibles: list[float]) -> float:
+    """Return the visible share below which a tracked pose's confidence falls (``confidence_at``).
+
+    ``visibles``: the visible shares (:attr:`apo.perception.register.SurfaceCheck.visible`)
+    of the last tracked frames. :data:`apo.perception.register.VISIBLE_MIN` (the guard
+    against a wrong pose hidden behind a forearm, which explains nothing and contradicts
+    nothing) until three frames were tracked; then at most :data:`VISIBLE_DROP` times their
+    median: a hand holding the part can hide 65-90 % of it for whole recordings, and there
+    the guard scaled the true pose's confidence below that of a pose slid out from behind
+    the hand with part of its surface seen through (independent recording 0, frame 48: 0.72
+    against 0.90, 22 mm off; the tracker took the latter).
+    """
+    if len(visibles) < 3:
+        return VISIBLE_MIN
+    return min(VISIBLE_MIN, VISIBLE_DROP * float(np.median(visibles)))
+
+
 class _Observed(NamedTuple):
     """The grasped object's observation in a window (or the whole frame)."""
 
@@ -727,6 +750,7 @@ class _Tracker:
         self.rmses: list[float] = []  # RMS residuals of the last tracked frames
         self.confs: list[float] = []  # and their confidences
         self.fits: list[float] = []  # and qualities
+        self.visibles: list[float] = []  # and their visible shares
         self.gap = 0
         self.rng = np.random.default_rng(self.opt.seed)
         self.margin = self.opt.track_distance + 0.1 * self.G.diameter
@@ -744,6 +768,15 @@ class _Tracker:
         if len(self.history) >= 2 and self.gap == 0:
             pred = orthonormalised(pred @ invert_pose(self.history[-2]) @ pred)
         return pred
+
+    @property
+    def visible_min(self) -> float:
+        """The visible share below which a pose's confidence falls (:func:`tracked_visible_min`)."""
+        return tracked_visible_min(self.visibles)
+
+    def confidence(self, r: Registration) -> float:
+        """``r``'s confidence at :attr:`visible_min`."""
+        return r.confidence_at(self.visible_min)
 
     def gate(self, pred: FloatArray) -> tuple[FloatArray, float]:
         """Centre and radius of the sphere the object can be in: its extent + motion margin."""
@@ -825,7 +858,9 @@ class _Tracker:
 
         # With clutter the share of the observed points a pose explains (the quality's
         # fitness) is no bar.
-        if r.confidence < bar(self.confs) or (not self.clutter and r.quality < bar(self.fits)):
+        if self.confidence(r) < bar(self.confs) or (
+            not self.clutter and r.quality < bar(self.fits)
+        ):
             return False
         rm = self.rmses
         return len(rm) < 3 or r.rmse <= self.opt.rmse_factor * float(np.median(rm))
@@ -858,7 +893,7 @@ class _Tracker:
             for start in starts:
                 first = self.start_scale(reach) if start is pred else reach
                 r = self.projective(start, d, c, pts, mask, env_d, reach, kw, shared, first)
-                if _better(r, result):
+                if _better(r, result, self.visible_min):
                     result = r
                 if result is not None and self.good(result):
                     return result
@@ -869,14 +904,14 @@ class _Tracker:
             if _displacement(self.G, start, r.X_CM) > self.opt.settle_distance:
                 # Far from the start: the ICP may have stopped on its iteration limit.
                 again = register(pts, self.G, r.X_CM, max_distance=reach, coarse=False, **kw)
-                if not _better(r, again):
+                if not _better(r, again, self.visible_min):
                     r = again
-            if _better(r, result):
+            if _better(r, result, self.visible_min):
                 result = r
             if result is not None and self.good(result):
                 return result
         r = register(pts, self.G, pred, **kw)
-        return r if _better(r, result) else result
+        return r if _better(r, result, self.visible_min) else result
 
     def _around(
         self, rgb: npt.NDArray[np.uint8], depth: npt.NDArray[np.float32], X: FloatArray
@@ -934,7 +969,8 @@ class _Tracker:
         if _displacement(self.G, pred, r.X_CM) > self.opt.settle_distance:
             again = register_projective(d, c, self.G, r.X_CM, points_C=pts, mask=mask,
                                         sigma=sigma, start_scale=reach, **args)  # fmt: skip
-            if _displacement(self.G, r.X_CM, again.X_CM) <= reach and not _better(r, again):
+            close = _displacement(self.G, r.X_CM, again.X_CM) <= reach
+            if close and not _better(r, again, self.visible_min):
                 r = again
         return r
 
@@ -997,14 +1033,16 @@ class _Tracker:
         pred = self.predict(i)
         result = self.track_window(rgb, depth, pred) if pred is not None else None
         fresh = False  # the result comes from the global search
-        if result is None or result.confidence < opt.min_confidence:
+        if result is None or self.confidence(result) < opt.min_confidence:
             self.reinit[i] = i > 0 or self.XG0 is not None
             again = self.reinitialise(rgb, depth)
-            if again is not None and (result is None or again.confidence > result.confidence):
+            if again is not None and (
+                result is None or self.confidence(again) > self.confidence(result)
+            ):
                 result, fresh = again, True
         if result is not None:
-            self.conf[i] = result.confidence
-        if result is None or result.confidence < opt.min_confidence:
+            self.conf[i] = self.confidence(result)
+        if result is None or self.conf[i] < opt.min_confidence:
             self.gap += 1
             return
         # The twin nearest the last tracked pose (the given one at the first frame).
@@ -1017,21 +1055,24 @@ class _Tracker:
         moved = _displacement(self.G, pred, X) if pred is not None and not fresh else None
         self.errors = [] if moved is None else [*self.errors[-2:], moved]
         self.rmses = [*self.rmses[-9:], result.rmse]
-        self.confs = [*self.confs[-9:], result.confidence]
+        self.confs = [*self.confs[-9:], self.conf[i]]
         self.fits = [*self.fits[-9:], result.quality]
+        if result.surface is not None:
+            self.visibles = [*self.visibles[-9:], result.surface.visible]
         self.gap = 0
 
 
-def _better(a: Registration, b: Registration | None) -> bool:
+def _better(a: Registration, b: Registration | None, visible_min: float = VISIBLE_MIN) -> bool:
     """More plausible; as plausible (within 0.02): higher quality, then smaller RMS residual.
 
     :func:`apo.perception.register.plausibility`: the confidence less the share of the
     outline the observed surface continues (without the colour, a pose inside the hand's
-    boxes explains as much of its surface as the true one).
+    boxes explains as much of its surface as the true one). ``visible_min``: see
+    :func:`tracked_visible_min`.
     """
     if b is None:
         return True
-    pa, pb = plausibility(a)[0], plausibility(b)[0]
+    pa, pb = plausibility(a, visible_min)[0], plausibility(b, visible_min)[0]
     if abs(pa - pb) > 0.02:
         return pa > pb
     if abs(a.quality - b.quality) > 0.01:
