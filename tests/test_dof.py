@@ -262,6 +262,45 @@ def test_tiny_tilt_snaps_and_large_tilt_does_not() -> None:
     assert state(-1e-2).translation == SpaceDof(1, 2, 0)
 
 
+def _slot(rng: np.random.Generator, tilt: float, offset: float) -> list[ContactPoint]:
+    """A block between two parallel walls, touching each at four corners facing each other.
+
+    The second wall's normal is turned by ``tilt`` rad about a random axis in the wall, and
+    its four points are moved by about ``offset`` m along it: what a pose correction to
+    1e-7 m and models rounded to float32 (an STL) leave of exact geometry.
+    """
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    u = np.cross(n, rng.normal(size=3))
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    half = rng.uniform(0.005, 0.04, 2)
+    corners = [a * u + b * v for a in (-half[0], half[0]) for b in (-half[1], half[1])]
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    axis = math.cos(angle) * u + math.sin(angle) * v
+    m = -n * math.cos(tilt) + np.cross(axis, -n) * math.sin(tilt)
+    origin = rng.normal(size=3) * 0.3
+    width = rng.uniform(0.005, 0.05)
+    moved = offset * rng.normal(size=(4, 2)) @ np.array([u, v])
+    walls = [cp(origin + c, n) for c in corners]
+    walls += [cp(origin + c + width * n + moved[i], m) for i, c in enumerate(corners)]
+    return walls
+
+
+def test_walls_opposite_within_the_rank_rule_are_opposite_for_the_cones_too() -> None:
+    # A slot's walls tilted by less than tol.rank are opposite for the rank rule (one
+    # constraining translation); the cone tests on the null vectors must agree (both
+    # rotations across the slot constrained), not find a one-way rotation from a tilt of
+    # 1e-7 rad: an STL's float32 coordinates did that to a peg in a slot (state G).
+    rng = np.random.default_rng(7)
+    expected = (SpaceDof(2, 0, 1), RotationDof(1, 0, 2, 0, 0))
+    for _ in range(60):
+        exact = analyze(_slot(rng, 0.0, 0.0))
+        assert (exact.translation, exact.rotation) == expected
+        near = analyze(_slot(rng, rng.uniform(0.05, 0.5) * 1e-6, 5e-8))
+        assert (near.translation, near.rotation) == expected
+
+
 def test_analyze_arrays_and_dict() -> None:
     r = analyze_arrays([(0, 0, 0)], [[(0, 0, 2.0)]])
     assert r.fig25 == (2, 1, 0, 3, 0, 0, 1, 0)

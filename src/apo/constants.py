@@ -22,7 +22,12 @@ class Tolerances:
     rank : float
         Relative singular-value threshold for ranks of unit-column matrices (DOF analysis).
     cone : float
-        Feasibility tolerance of the cone LPs, on unit-normalised generators.
+        Feasibility tolerance of the cone LPs, on unit-normalised generators; the least
+        tolerance of the sign tests on null vectors, which follow the rank rule's null-space
+        error up to ``cone_max`` (:func:`apo.dof._null_space_eta`).
+    cone_max : float
+        The largest tolerance of those sign tests (a null space barely above the rank cut is
+        ill-posed at this precision whatever the tolerance).
     coplanar_angle : float
         Two triangles are one face when their normals differ by less than this (rad).
     coplanar_distance : float
@@ -146,6 +151,7 @@ class Tolerances:
 
     rank: float = 1e-6
     cone: float = 1e-7
+    cone_max: float = 1e-5
     coplanar_angle: float = 1e-4
     coplanar_distance: float = 1e-7
     merge: float = 1e-8

@@ -520,11 +520,28 @@ def _support_lp(z: FloatArray, eta: float) -> BoolArray:
     return np.asarray(x_opt[z.shape[1] :] > 0.5, dtype=bool)
 
 
-def _support(g: FloatArray, z: FloatArray, tolerances: Tolerances) -> BoolArray:
+def _null_space_eta(s: FloatArray, rank: int, tolerances: Tolerances) -> float:
+    """Tolerance of the sign tests on a numerical null space's vectors (unit scale).
+
+    The rank rule (:func:`_rank_from_sv`) takes ``G`` for a matrix of rank ``r`` plus a
+    perturbation of norm up to ``tol.rank * max(sigma_1, 1)``; the null space it returns is
+    then that of the nearby rank-``r`` matrix, off by an angle up to that over ``sigma_r``
+    (Wedin's bound). A component of a null vector smaller than that is zero at the
+    precision the rank rule already decided at: two walls opposite within ``tol.rank`` are
+    opposite for the cone tests too (docs/dof.md, "Tolerances and the rank rule"). At least
+    ``tol.cone``, at most ``tol.cone_max``.
+    """
+    if rank == 0:
+        return tolerances.cone
+    bound = tolerances.rank * max(float(s[0]), 1.0) / float(s[rank - 1])
+    return min(max(bound, tolerances.cone), tolerances.cone_max)
+
+
+def _support(g: FloatArray, s: FloatArray, vt: FloatArray, tolerances: Tolerances) -> BoolArray:
     """Maximal support of ``{lambda >= 0 : G lambda = 0}`` (see :func:`maximal_support`).
 
-    ``g`` has unit columns and ``z`` is an orthonormal basis (N, k) of its numerical null
-    space. Exact shortcuts first, the LP only on what they leave undecided.
+    ``g`` has unit columns, ``s`` and ``vt`` are its singular values and right singular
+    vectors (full). Exact shortcuts first, the LP only on what they leave undecided.
 
     A known part ``low`` of the support (with ``cone(G[:, low])`` a subspace ``L``) is grown:
     ``S(G) = low + S(H)`` with ``H`` the other columns projected onto ``L^perp``. Each round
@@ -533,10 +550,12 @@ def _support(g: FloatArray, z: FloatArray, tolerances: Tolerances) -> BoolArray:
     stops with a pointedness certificate (``x`` with ``h_j . x > 0`` for all ``j``: then
     ``S(H)`` is empty), with ``null(H) = 0``, or falls back to the LP on ``null(H)``.
     """
+    rank = _rank_from_sv(s, tolerances)
+    z = vt[rank:].T
     n_col, k = z.shape
     if k == 0 or n_col == 0:
         return np.zeros(n_col, dtype=bool)
-    eta = tolerances.cone
+    eta = _null_space_eta(s, rank, tolerances)
     if k == 1:
         col = z[:, 0].copy()
         col[np.abs(col) <= eta] = 0.0
@@ -569,9 +588,11 @@ def _support(g: FloatArray, z: FloatArray, tolerances: Tolerances) -> BoolArray:
                 return low
             x = x + hu[:, violated].sum(axis=1)
         _, sh, vht = np.linalg.svd(hu, full_matrices=True)
-        zh = vht[_rank_from_sv(sh, tolerances) :].T
+        rank_h = _rank_from_sv(sh, tolerances)
+        zh = vht[rank_h:].T
         if zh.shape[1] == 0:
             return low
+        eta = max(eta, _null_space_eta(sh, rank_h, tolerances))
         zh[np.linalg.norm(zh, axis=1) <= eta] = 0.0
         if zh.shape[1] == 1:
             found = _support_1d(zh[:, 0], eta)
@@ -627,8 +648,7 @@ def maximal_support(g: FloatArray, *, tolerances: Tolerances = tol) -> BoolArray
         raise ValueError("g must have finite, non-zero columns")
     g = g / lengths
     _, s, vt = np.linalg.svd(g, full_matrices=True)
-    r = _rank_from_sv(s, tolerances)
-    return _support(g, vt[r:].T, tolerances)
+    return _support(g, s, vt, tolerances)
 
 
 def _orth_complement(basis: FloatArray, remove: FloatArray, count: int, dim: int = 3) -> FloatArray:
@@ -693,7 +713,7 @@ def _translation_part(f: FloatArray, tolerances: Tolerances) -> _TranslationPart
     uf, sf, vft = np.linalg.svd(f, full_matrices=True)
     rank_f = _rank_from_sv(sf, tolerances)
     m_t = 3 - rank_f
-    s_t = _support(f, vft[rank_f:].T, tolerances)
+    s_t = _support(f, sf, vft, tolerances)
     f_s = f[:, s_t]
     if f_s.shape[1]:
         ufs, sfs, vfst = np.linalg.svd(f_s, full_matrices=True)
@@ -722,7 +742,7 @@ def _all_part(w: FloatArray, tolerances: Tolerances) -> tuple[SpaceDof, FloatArr
     uw, sw, vwt = np.linalg.svd(w, full_matrices=True)
     rank_w = _rank_from_sv(sw, tolerances)
     m_a = 6 - rank_w
-    s_a = _support(w, vwt[rank_w:].T, tolerances)
+    s_a = _support(w, sw, vwt, tolerances)
     w_s = w[:, s_a]
     if w_s.shape[1]:
         uws, sws, _ = np.linalg.svd(w_s, full_matrices=True)
