@@ -172,3 +172,21 @@ def test_tracked_part_mostly_hidden_by_a_hand_keeps_its_confidence(
     off = evaluate(pts, v["model"], slid, **kw)
     assert off.surface is not None and off.surface.violation > 0.0
     assert plausibility(true, bar) > plausibility(off, bar)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_pose_a_pixel_off_does_not_continue_its_outline(seed: int) -> None:
+    # A part in front of a wall, and its model a pixel smaller on every side (the outline a
+    # pixel inside the observed one, as a pose that fits a single frame's tilted depth
+    # leaves it): the pixel next to the model's outline is the part's own, at the depth of
+    # its face; the outline test reads past it and sees the jump to the wall.
+    rng = np.random.default_rng(seed)
+    size = rng.uniform(0.02, 0.04, 2)
+    part = ((*size, 0.02), (0.0, 0.0, 0.0))
+    cam, depth, X = _boxes_view(seed, [part])
+    pixel = 0.5 / cam.fx  # metres a pixel at the part (0.5 m)
+    shrink = 2 * float(rng.uniform(0.6, 1.2)) * pixel
+    V, T = box_triangles((size[0] - shrink, size[1] - shrink, 0.02), (0.0, 0.0, 0.0))
+    s = surface_check(X, ModelCloud((V, T)), depth, cam, tolerance=0.003,
+                      occluder=np.zeros_like(depth))  # fmt: skip
+    assert s.explained == 1.0 and s.continued < 0.4 and s.score == 1.0, s
