@@ -172,3 +172,50 @@ def test_squared_distances_by_one_matrix_product_are_within_their_slack(offset: 
     exact = np.sum((P[:, None, :] - C[None, :, :]) ** 2, axis=2)
     assert np.max(np.abs(_sq_dist(P, C) - exact)) <= _sq_dist_slack(P, C)
     assert _sq_dist_slack(P, C) < 1e-12 * max(1.0, offset) ** 2
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_distances_and_cones_in_small_chunks_are_those_at_once(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The exact distance tests (ROW_CHUNK pairs at a time), the separating normals
+    # (CONE_CHUNK pairs of pieces at a time) and the touching pairs (TOUCH_ROWS expanded at
+    # a time) are row by row: chunks of a few rows give the same states bit for bit (keys,
+    # touching pairs, points, normals) and the same labels, on noisy random variants at a
+    # wide threshold (many pairs a frame).
+    import apo.contact.distance_tests
+    import apo.contact.search
+
+    demo = _noisy_variant(seed)
+    G, E = demo.grasped, demo.environment
+    finder = ContactFinder(G, E, threshold=3 * default_threshold(G, E, observed=True))
+    X = demo.X_EG
+    whole, labels = finder.find_batch(X), finder.find_labels(X)
+    assert sum(len(s.elements) for s in whole) > 2 * len(X)
+    monkeypatch.setattr(apo.contact.distance_tests, "ROW_CHUNK", 7)
+    monkeypatch.setattr(apo.contact.search, "CONE_CHUNK", 3)
+    monkeypatch.setattr(apo.contact.distance_tests, "TOUCH_ROWS", 5)
+    calls = {"cones": 0, "triangles": 0, "unique": 0}
+
+    def counted(name: str, mod: object, f: str) -> None:
+        inner = getattr(mod, f)
+
+        def spy(*args: object, **kw: object) -> object:
+            calls[name] += 1
+            return inner(*args, **kw)
+
+        monkeypatch.setattr(mod, f, spy)
+
+    counted("cones", apo.contact.search, "_cone_pairs")
+    counted("triangles", apo.contact.distance_tests, "_point_triangle_distance")
+    counted("unique", apo.contact.distance_tests, "unique")
+    chunked = finder.find_batch(X)
+    blocks = -(-len(X) // finder.block_frames)
+    assert min(calls.values()) > 3 * blocks, calls  # chunked
+    assert len(chunked) == len(whole)
+    for x, y in zip(chunked, whole, strict=True):
+        assert x.key == y.key and x.touching == y.touching
+        for e, f in zip(x.elements, y.elements, strict=True):
+            assert np.array_equal(e.point, f.point) and np.array_equal(e.normals, f.normals)
+    for a, b in zip(finder.find_labels(X), labels, strict=True):
+        assert np.array_equal(a, b)

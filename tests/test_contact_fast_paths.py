@@ -14,7 +14,7 @@ from apo.contact.distance_tests import (
     _triangle_terms,
 )
 from apo.contact.model_data import _model_data
-from apo.contact.search import _group_sets
+from apo.contact.search import _group_sets, block_sets, merge_sets
 from apo.typing import FloatArray
 
 
@@ -124,3 +124,28 @@ def test_group_sets_labels_by_first_appearance_like_sorting(seed: int) -> None:
     want = group_sets_sorted(frame, code, n)
     for x, y in zip(got, want, strict=True):
         assert np.array_equal(x, y)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_sets_merged_block_by_block_label_like_all_rows_at_once(seed: int) -> None:
+    """Frames keyed a block at a time (``block_sets``, the rows dropped) and the blocks'
+    keys merged in order (``merge_sets``): the labels and first frames of sorting all the
+    rows at once, whatever the blocks, also with codes beyond int32 (keys always int64)."""
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(1, 400))
+    big = int(rng.integers(0, 2)) * (1 << 40)  # codes past int32 in half the runs
+    sets = [np.unique(rng.integers(0, 9, size=rng.integers(0, 4))) + big for _ in range(12)]
+    pick = rng.integers(0, len(sets), size=n)
+    frame = np.concatenate([np.full(len(sets[p]), f) for f, p in enumerate(pick)]).astype(np.int64)
+    code = np.concatenate([sets[p] for p in pick]).astype(np.int64)
+    want = group_sets_sorted(frame, code, n)
+    cuts = np.unique(np.concatenate([[0, n], rng.integers(0, n + 1, size=int(rng.integers(0, 9)))]))
+    blocks = []
+    for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True):
+        rows = (frame >= a) & (frame < b)
+        blocks.append(block_sets(frame[rows] - a, code[rows], b - a))
+        assert blocks[-1].local.dtype == np.int32 and len(blocks[-1].local) == b - a
+    for x, y in zip(merge_sets(blocks, n), want, strict=True):
+        assert np.array_equal(x, y)
+    with pytest.raises(ValueError, match="cover"):
+        merge_sets(blocks, n + 1)

@@ -70,6 +70,47 @@ def test_static_region_keeps_the_outline_pixels_the_sensor_drops() -> None:
     assert np.count_nonzero(static) == np.count_nonzero(block | (ring & masks.any(axis=0)))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_static_surface_drops_a_part_held_over_the_environment(seed: int) -> None:
+    # A block's top at random depth and noise; a part held over part of it for most of
+    # the frames (occupied there, at about the same depth: static by occupancy and by the
+    # same-surface test), moved away in the others, where the block is seen behind it.
+    # Each block pixel gets one flying depth (an edge's mixed depth, far behind) in one
+    # random frame. The block's surface is kept, the part's pixels are not.
+    from apo.perception.track import TrackOptions, _static_surface
+
+    rng = np.random.default_rng(seed)
+    opt = TrackOptions()
+    noise = DepthNoiseModel(float(rng.uniform(1e-3, 6e-3)))
+    n, npx = 30, 400
+    z = float(rng.uniform(0.4, 1.0))
+    sigma = float(noise.sigma(z))
+    D = (z + sigma * rng.standard_normal((n, npx))).astype(np.float32)
+    D[rng.integers(n, size=npx), np.arange(npx)] += float(rng.uniform(0.03, 0.2))
+    part = np.zeros(npx, dtype=bool)
+    part[: int(rng.integers(40, 120))] = True
+    held = rng.random(n) < float(rng.uniform(0.75, 0.9))  # frames where the part is there
+    held[:2] = True
+    held[2:4] = False  # at least two frames see the block behind it
+    bound_z = max(opt.environment_threshold, opt.noise_sigmas * sigma)
+    above = float(rng.uniform(1.3, 3.0)) * bound_z  # beyond the bound, within a few of it
+    D[np.ix_(held, part)] = z - above + sigma * rng.standard_normal((held.sum(), part.sum()))
+    masks = np.ones(D.shape, dtype=bool)
+    measured = np.full(npx, n, dtype=np.int64)
+
+    def bound(d: np.ndarray) -> np.ndarray:
+        return np.maximum(opt.environment_threshold, opt.noise_sigmas * noise.sigma(d))
+
+    args = (D, masks, measured, bound, opt.same_surface_fraction)
+    surface = _static_surface(*args, opt.behind_frames)
+    before = _static_surface(*args, n + 1)  # without the test: the part is static
+    assert before[part].all()
+    assert not surface[part].any()
+    block = surface[~part]
+    assert np.mean(block > 0) > 0.99  # a flying pixel and one 4-sigma draw: rare
+    assert np.all(np.abs(block[block > 0] - z) < 5 * 1.25 * sigma / np.sqrt(n))  # the median's
+
+
 def _environment_error(X: np.ndarray, X_true: np.ndarray, syms: list) -> tuple[float, float]:
     errs = [
         (

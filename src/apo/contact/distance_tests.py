@@ -7,6 +7,7 @@ pairs of edges within the threshold, and every touching (G feature, E feature) p
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -29,6 +30,23 @@ from apo.typing import FloatArray, IntArray
 
 # Bounding-sphere tests use radius * this: rounding never drops a pair within the threshold.
 _SPHERE_MARGIN = 1.0 + tol.sphere_margin
+
+#: Candidate pairs whose exact distance (point-segment, point-triangle, segment-segment) is
+#: computed at once: each test's working arrays take 100-260 bytes a pair, and a block of
+#: frames all in contact has some 20,000 of them (10 MB at once; docs/recognition.md,
+#: "Session 9: memory"). The tests are row by row: the same distances in any chunks.
+ROW_CHUNK = 8192
+
+
+def _chunked_distances(n: int, dist_of: Callable[[slice], FloatArray]) -> FloatArray:
+    """``dist_of(rows)`` of ``ROW_CHUNK`` rows at a time, joined: shape (n,)."""
+    if n <= ROW_CHUNK:
+        return dist_of(slice(0, n))
+    out = np.empty(n)
+    for a in range(0, n, ROW_CHUNK):
+        rows = slice(a, min(n, a + ROW_CHUNK))
+        out[rows] = dist_of(rows)
+    return out
 
 
 def _triangle_terms(
@@ -136,8 +154,13 @@ def _near_features(
         i, s = _pairs_from_ball(te.query_ball_point(Q, d + er), np.arange(len(Q)))
         key = np.unique(i * md.ne + eown[s])
         ii, jj = key // md.ne, key % md.ne
-    cl, _ = closest_point_on_segment(Q[ii], md.E0[jj], md.E1[jj])
-    dist = _norm(Q[ii] - cl)
+
+    def seg_dist(k: slice) -> FloatArray:
+        q = Q[ii[k]]
+        cl, _ = closest_point_on_segment(q, md.E0[jj[k]], md.E1[jj[k]])
+        return _norm(q - cl)
+
+    dist = _chunked_distances(len(ii), seg_dist)
     ok = dist <= d
     ee = (rows[ii[ok]], jj[ok].astype(np.int64), dist[ok])
     # faces via triangles, pre-filtered by the plane distance (and bounding spheres)
@@ -161,7 +184,12 @@ def _nearest_face(
     md: _ModelData, Q: FloatArray, rows: IntArray, ii: IntArray, tt_: IntArray, d: float
 ) -> tuple[IntArray, IntArray, FloatArray]:
     """(point, face, distance) within ``d`` from candidate (point, triangle) pairs."""
-    dist = _point_triangle_distance(Q[ii], md.TA[tt_], md.TB[tt_], md.TC[tt_])
+
+    def tri_dist(k: slice) -> FloatArray:
+        t = tt_[k]
+        return _point_triangle_distance(Q[ii[k]], md.TA[t], md.TB[t], md.TC[t])
+
+    dist = _chunked_distances(len(ii), tri_dist)
     ok = dist <= d
     ii, ff, dist = ii[ok], md.tri_face[tt_[ok]], dist[ok]
     if len(ii) == 0:
@@ -273,8 +301,13 @@ def _edge_pairs(
         ia, ib = np.concatenate(ias), np.concatenate(ibs)
     if len(ia) == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I
-    r = segment_segment_closest(A0[ia], A1[ia], e.E0[ib], e.E1[ib])
-    ok = r.distance <= d
+
+    def pair_dist(k: slice) -> FloatArray:
+        i, j = ia[k], ib[k]
+        dist: FloatArray = segment_segment_closest(A0[i], A1[i], e.E0[j], e.E1[j]).distance
+        return dist
+
+    ok = _chunked_distances(len(ia), pair_dist) <= d
     ia, ib = ia[ok].astype(np.int64), ib[ok].astype(np.int64)
     return ia // g.ne, ia % g.ne, ib
 
@@ -323,13 +356,7 @@ def _touching(
                 same_as[f] = rep
                 keep[lo:hi] = False
         F, P, Qe = F[keep], P[keep], Qe[keep]
-    lp, lq = g.star_len[P], e.star_len[Qe]
-    n = lp * lq
-    k = np.repeat(np.arange(len(P)), n)
-    o = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    a = g.star_data[g.star_ptr[P[k]] + o // lq[k]]
-    b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
-    code = unique((F[k] * g.n_all + a) * e.n_all + b)
+    code = _touching_codes(g, e, F, P, Qe)
     fr, code = np.divmod(code, g.n_all * e.n_all)
     bounds = np.searchsorted(fr, np.arange(n_frames + 1)).tolist()
     pairs = _pair_table(g, e, code)
@@ -341,6 +368,38 @@ def _touching(
         lo, hi = bounds[f], bounds[f + 1]
         out.append(frozenset(map(pairs.__getitem__, code[lo:hi].tolist())))
     return out
+
+
+#: Feature pairs (a primitive pair's stars crossed) expanded at once by
+#: :func:`_touching_codes`: some 60 bytes each, and the frames of many states in contact
+#: expand to hundreds of thousands (docs/recognition.md, "Session 9: memory").
+TOUCH_ROWS = 32768
+
+
+def _touching_codes(
+    g: _ModelData, e: _ModelData, F: IntArray, P: IntArray, Qe: IntArray
+) -> IntArray:
+    """Sorted distinct codes ``(frame * g.n_all + a) * e.n_all + b`` of the touching pairs.
+
+    Each primitive pair ``(P, Qe)`` at frame ``F`` gives every pair of a feature of P's star
+    (``a``) and of Qe's (``b``); the pairs are expanded about ``TOUCH_ROWS`` at a time (the
+    distinct codes of all chunks' distinct codes are those of all the pairs).
+    """
+    lp, lq = g.star_len[P], e.star_len[Qe]
+    n = lp * lq
+    ends = np.cumsum(n)
+    cuts = [0, *np.searchsorted(ends, np.arange(TOUCH_ROWS, int(ends[-1]), TOUCH_ROWS)).tolist()]
+    parts = []
+    for r0, r1 in zip(cuts, [*cuts[1:], len(P)], strict=True):
+        if r1 <= r0:
+            continue
+        m = n[r0:r1]
+        k = np.repeat(np.arange(r0, r1), m)
+        o = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
+        a = g.star_data[g.star_ptr[P[k]] + o // lq[k]]
+        b = e.star_data[e.star_ptr[Qe[k]] + o % lq[k]]
+        parts.append(unique((F[k] * g.n_all + a) * e.n_all + b))
+    return parts[0] if len(parts) == 1 else unique(np.concatenate(parts))
 
 
 def _pair_table(

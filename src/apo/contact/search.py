@@ -9,8 +9,8 @@ searches a whole sequence of poses at once (:meth:`ContactFinder.find_batch`);
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
-from typing import NamedTuple
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -26,7 +26,7 @@ from apo.contact.distance_tests import (
     _NearF,
     _touching,
 )
-from apo.contact.elements import ContactState
+from apo.contact.elements import _KIND_LIST, ContactState
 from apo.contact.model_data import _model_data, _ModelData
 from apo.contact.separating_normals import _cone_pairs
 from apo.contact.thresholds import default_angle_tolerance, default_threshold
@@ -197,7 +197,7 @@ class ContactFinder:
         [[0, 1, 0], [0, 1]]
         """
         X = _check_poses(X_EG_seq)
-        return self.labels_of_codes(*self._codes(X, progress), len(X))
+        return self.labels_of_sets(self._sets(X, progress), len(X))
 
     @property
     def block_frames(self) -> int:
@@ -242,6 +242,29 @@ class ContactFinder:
             return _EMPTY_I, _EMPTY_I
         return np.concatenate(frames), np.concatenate(codes)
 
+    def _sets(
+        self, X: FloatArray, progress: Callable[[int, int], None] | None
+    ) -> Iterator[BlockSets]:
+        """:func:`block_sets` of each block of ``X`` in turn (its rows dropped once keyed)."""
+        g, e = self._g, self._e
+        step = self.block_frames
+        for a in range(0, len(X), step):
+            Xb = X[a : a + step]
+            codes = _element_codes(g, e, self.threshold, self.angle_tol, Xb)
+            yield block_sets(*codes, len(Xb), self.code_type)
+            if progress is not None:
+                progress(min(a + step, len(X)), len(X))
+
+    @property
+    def code_type(self) -> type[np.signedinteger[Any]]:
+        """The narrowest integer type of every element code of the two models (int32, int64).
+
+        The codes ``(kind * g.n_all + G primitive) * e.n_all + E primitive`` of
+        :meth:`element_codes` are below ``kinds * g.n_all * e.n_all``.
+        """
+        bound = len(_KIND_LIST) * self._g.n_all * self._e.n_all
+        return np.int32 if bound <= np.iinfo(np.int32).max else np.int64
+
     @staticmethod
     def labels_of_codes(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntArray]:
         """Labels of ``n`` poses by their sets of element codes (:meth:`element_codes`' rows).
@@ -252,6 +275,17 @@ class ContactFinder:
         if n == 0:
             return _EMPTY_I, _EMPTY_I
         return _group_sets(frame, code, n)
+
+    @staticmethod
+    def labels_of_sets(blocks: Iterable[BlockSets], n: int) -> tuple[IntArray, IntArray]:
+        """Labels of ``n`` poses from the :func:`block_sets` of their blocks, in order.
+
+        The same labels and first poses as :meth:`labels_of_codes` of the blocks' rows
+        concatenated (:func:`merge_sets`).
+        """
+        if n == 0:
+            return _EMPTY_I, _EMPTY_I
+        return merge_sets(blocks, n)
 
     # ---------------------------------------------------------------------------------------
 
@@ -354,7 +388,7 @@ def _find_frames(
         return states
     n_act = len(w.active)
     touching = _touching(g, e, w.near_g, w.near_e, w.ee, n_act)
-    count, rays, extra = _cone_pairs(g, e, angle_tol, w.pg, w.pe, w.R[w.wfr], naive=naive)
+    count, rays, extra = _cones(g, e, angle_tol, w, naive=naive)
     kind, fa_k, fa_i, fb_k, fb_i = w.classified
     valid = (kind >= 0) & (count > 0)
     per_frame = _elements(
@@ -370,6 +404,44 @@ def _find_frames(
     return states
 
 
+#: Pairs of convex pieces whose separating normals are found at once (:func:`_cones`): the
+#: vectorised cases take about a kilobyte of working arrays a pair, and a block of frames all
+#: in contact has some 6,000 pairs (docs/recognition.md, "Session 9: memory").
+CONE_CHUNK = 2048
+
+
+def _cones(
+    g: _ModelData,
+    e: _ModelData,
+    angle_tol: float,
+    w: _Work,
+    *,
+    naive: bool,
+    counts_only: bool = False,
+) -> tuple[IntArray, FloatArray, dict[int, FloatArray]]:
+    """:func:`_cone_pairs` of the work's pairs, ``CONE_CHUNK`` pairs at a time.
+
+    Each pair's normals are found on their own (the vectorised cases row by row, the others
+    one by one), so the chunks give the same counts, rays and extra rays as all at once.
+    """
+    n = len(w.pg)
+    if n <= CONE_CHUNK:
+        return _cone_pairs(
+            g, e, angle_tol, w.pg, w.pe, w.R[w.wfr], naive=naive, counts_only=counts_only
+        )
+    count = np.zeros(n, dtype=np.int64)
+    rays = np.zeros((n, 2, 3))
+    extra: dict[int, FloatArray] = {}
+    for a in range(0, n, CONE_CHUNK):
+        k = slice(a, a + CONE_CHUNK)
+        c, r, more = _cone_pairs(
+            g, e, angle_tol, w.pg[k], w.pe[k], w.R[w.wfr[k]], naive=naive, counts_only=counts_only
+        )
+        count[k], rays[k] = c, r
+        extra.update((a + i, v) for i, v in more.items())
+    return count, rays, extra
+
+
 def _element_codes(
     g: _ModelData, e: _ModelData, d: float, angle_tol: float, X: FloatArray
 ) -> tuple[IntArray, IntArray]:
@@ -383,9 +455,7 @@ def _element_codes(
     w = _work(g, e, d, angle_tol, X, naive=False)
     if w is None:
         return _EMPTY_I, _EMPTY_I
-    count, _, _ = _cone_pairs(
-        g, e, angle_tol, w.pg, w.pe, w.R[w.wfr], naive=False, counts_only=True
-    )
+    count, _, _ = _cones(g, e, angle_tol, w, naive=False, counts_only=True)
     kind, fa_k, fa_i, fb_k, fb_i = w.classified
     ok = np.flatnonzero((kind >= 0) & (count > 0))
     code = (kind[ok] * g.n_all + g.offset[fa_k[ok]] + fa_i[ok]) * e.n_all
@@ -402,24 +472,68 @@ def _group_sets(frame: IntArray, code: IntArray, n: int) -> tuple[IntArray, IntA
     """Label ``n`` frames by their sets of codes (rows sorted by frame, then code).
 
     Returns each frame's label (0, 1, ... in order of first appearance) and the first frame
-    of each label.
+    of each label. The codes keyed as int32 where they all fit.
     """
-    cnt = np.bincount(frame, minlength=n)
-    # each frame's codes (a run of the sorted rows) as one bytes key: the same labels as
-    # its row of codes padded to the widest frame, without an (n, width) matrix
     i32 = np.iinfo(np.int32)
     narrow = not len(code) or (int(code.min()) >= i32.min and int(code.max()) <= i32.max)
-    buf = code.astype(np.int32 if narrow else np.int64).tobytes()
-    ends = (np.cumsum(cnt) * (4 if narrow else 8)).tolist()
+    return merge_sets([block_sets(frame, code, n, np.int32 if narrow else np.int64)], n)
+
+
+class BlockSets(NamedTuple):
+    """The sets of element codes of a block of frames (:func:`block_sets`).
+
+    ``keys``: each distinct set once, as the bytes of its sorted codes (int64), in order
+    of first appearance in the block; ``local``: each frame's index into ``keys`` (int32).
+    """
+
+    keys: list[bytes]
+    local: npt.NDArray[np.int32]
+
+
+def block_sets(
+    frame: IntArray, code: IntArray, n: int, code_type: type[np.signedinteger[Any]] = np.int64
+) -> BlockSets:
+    """Key the ``n`` frames of a block by their sets of codes (rows sorted by frame, then code).
+
+    Each frame's codes (a run of the sorted rows) make one bytes key, of the codes as
+    ``code_type`` (one type for every block, so that the keys of different blocks compare;
+    :attr:`ContactFinder.code_type`): the same grouping as its row of codes padded to the
+    widest frame, without an ``(n, width)`` matrix. What a block's rows (16 bytes an
+    element, some 20 elements a frame in contact) come down to: 4 bytes a frame and the
+    block's distinct sets.
+    """
+    cnt = np.bincount(frame, minlength=n)
+    size = np.dtype(code_type).itemsize
+    buf = np.asarray(code).astype(code_type).tobytes()
+    ends = (np.cumsum(cnt) * size).tolist()
     index: dict[bytes, int] = {}
-    labels = np.fromiter(
+    local = np.fromiter(
         (
             index.setdefault(buf[a:b], len(index))
             for a, b in zip([0, *ends[:-1]], ends, strict=True)
         ),
-        np.int64,
+        np.int32,
         count=n,
     )
+    return BlockSets(list(index), local)
+
+
+def merge_sets(blocks: Iterable[BlockSets], n: int) -> tuple[IntArray, IntArray]:
+    """Labels of ``n`` frames whose consecutive blocks have the sets ``blocks``, in order.
+
+    Returns each frame's label (0, 1, ... in order of first appearance) and the first frame
+    of each label. A block's keys come in order of first appearance within the block, so
+    numbering them in block order numbers the sets in order of first appearance overall.
+    """
+    index: dict[bytes, int] = {}
+    labels = np.empty(n, dtype=np.int64)
+    a = 0
+    for keys, local in blocks:
+        glob = np.fromiter((index.setdefault(k, len(index)) for k in keys), np.int64, len(keys))
+        labels[a : a + len(local)] = glob[local]
+        a += len(local)
+    if a != n:
+        raise ValueError(f"the blocks' sets cover {a} frames, not {n}")
     first = np.full(len(index), n, dtype=np.int64)
     np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
     return labels, first

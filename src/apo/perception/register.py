@@ -316,8 +316,12 @@ class Registration:
         ``surface.score * (1 - penetration)`` (:class:`SurfaceCheck`) when a depth image was
         given; without one, ``fitness * (1 - penetration)``. In [0, 1].
         """
+        return self.confidence_at(VISIBLE_MIN)
+
+    def confidence_at(self, visible_min: float) -> float:
+        """:attr:`confidence` with ``visible_min`` (see :meth:`SurfaceCheck.score_at`)."""
         if self.surface is not None:
-            return float(self.surface.score * (1.0 - self.penetration))
+            return float(self.surface.score_at(visible_min) * (1.0 - self.penetration))
         return float(self.fitness * (1.0 - self.violation) * (1.0 - self.penetration))
 
 
@@ -341,6 +345,13 @@ contact lines: up to 0.32 at the true poses of variant seeds 1 to 8 with a hand,
 CONTINUED_NONE = 0.7
 """... and the share at which the confidence is 0 (the model sits inside a larger object that
 shares its faces: 0.35 to 0.83 for the wrong poses of the same seeds' global search)."""
+OUTLINE_GAP = 2
+"""Image pixels from a model's outline pixel to the outside pixel the outline test reads
+(:func:`_continued`; at least one step of its grid). The pixel next to the silhouette is the
+part's own when the pose is a pixel off, and a single frame's depth tilts a small far part's
+pose by 1 to 3 deg (correlated noise; independent recording 5, 0.82-0.89 m): read one pixel out,
+the outline of the part's pose that fits the depth best continued on 0.51 of it (the part's
+own pixels, within the 10.6 mm tolerance), scoring 0.63; two pixels out, 0.08."""
 CONTINUED_WEIGHT = 0.1
 """Weight of the outline continued when poses of one frame are ranked (:func:`plausibility`): a
 tie-break among about equally confident poses (variant seed 6 with the learnt colour: the true
@@ -400,9 +411,18 @@ class SurfaceCheck:
         ``outline`` is 1 while :attr:`continued` is at most :data:`CONTINUED_FREE`, falling
         linearly to 0 at :data:`CONTINUED_NONE`.
         """
+        return self.score_at(VISIBLE_MIN)
+
+    def score_at(self, visible_min: float) -> float:
+        """:attr:`score` with ``visible_min`` for :data:`VISIBLE_MIN`.
+
+        A tracker that has seen the part over the last frames knows how much of it the hand
+        holding it hides: a pose hidden about as much is no less sure for it
+        (:func:`apo.perception.track.track_frames`).
+        """
         outline = (CONTINUED_NONE - self.continued) / (CONTINUED_NONE - CONTINUED_FREE)
         outline = min(1.0, max(0.0, outline))
-        return float(self.explained * min(1.0, self.visible / VISIBLE_MIN) * outline)
+        return float(self.explained * min(1.0, self.visible / visible_min) * outline)
 
 
 def _interior(rendered: npt.NDArray[np.float32], jump: float) -> npt.NDArray[np.bool_]:
@@ -518,11 +538,12 @@ def _continued(
     ``rendered`` and ``d`` are the model's and the observed depth on the grid ``(u0, v0,
     step)`` of the whole image ``depth`` (and ``occluder``). An outline pixel is a model
     pixel whose grid neighbour on one side is not the model's and on the other side is;
-    the pixel one grid step outside (read from the whole image) counts when it has a
+    the pixel :data:`OUTLINE_GAP` image pixels outside (at least one grid step; read from
+    the whole image; the model's pixels up to it not the model's) counts when it has a
     depth; it never continues the model where the known occluder explains it (contact
     with the other object is allowed). It *continues* the model when the outline pixel is
     explained (observed within ``tolerance`` of the model) and the outside pixel lies
-    within ``tolerance`` of the model's surface extrapolated one step on: a part held by a
+    within ``tolerance`` of the model's surface extrapolated that far on: a part held by a
     hand shows depth jumps at its outline (to the background behind it, to the hand in
     front), a model placed inside a larger box shows the box's faces running on.
     """
@@ -534,14 +555,16 @@ def _continued(
     h, w = r.shape
     vv, uu = np.nonzero(on)
     n_out = n_cont = 0
+    reach = max(1, -(-OUTLINE_GAP // step))  # grid steps to the outside pixel
     for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0)):
         vi, ui = vv - dv, uu - du  # inward neighbour: a model pixel too
-        vo, uo = vv + dv, uu + du  # outward neighbour: not the model's
+        outward = np.ones(len(vv), dtype=bool)  # the neighbours out to the one read: not it
+        for j in range(1, reach + 1):
+            vo, uo = vv + j * dv, uu + j * du
+            inside = (vo >= 0) & (vo < h) & (uo >= 0) & (uo < w)
+            outward[inside] &= ~on[vo[inside], uo[inside]]
         inward = (vi >= 0) & (vi < h) & (ui >= 0) & (ui < w)
         inward[inward] = on[vi[inward], ui[inward]]
-        inside = (vo >= 0) & (vo < h) & (uo >= 0) & (uo < w)
-        outward = np.ones(len(vv), dtype=bool)
-        outward[inside] = ~on[vo[inside], uo[inside]]
         vf, uf = v0 + vo * step, u0 + uo * step  # the outside pixel in the whole image
         rows, cols = D.shape
         k = inward & outward & (vf >= 0) & (vf < rows) & (uf >= 0) & (uf < cols)
@@ -553,7 +576,7 @@ def _continued(
         keep &= ~((o > 0) & (np.abs(out - o) <= tolerance))
         e, out = e[keep], out[keep]
         r_e = r[vv[e], uu[e]]
-        ext = 2.0 * r_e - r[vv[e] - dv, uu[e] - du]
+        ext = r_e + reach * (r_e - r[vv[e] - dv, uu[e] - du])
         seen = np.abs(d[vv[e], uu[e]] - r_e) <= tolerance
         n_cont += int(np.count_nonzero(seen & (np.abs(out - ext) <= tolerance)))
     return n_cont / n_out if n_out else 0.0
@@ -1124,7 +1147,7 @@ def initialise(
     return best
 
 
-def plausibility(r: Registration) -> tuple[float, float]:
+def plausibility(r: Registration, visible_min: float = VISIBLE_MIN) -> tuple[float, float]:
     """Rank of poses of one frame: the confidence, less a little for the outline continued.
 
     ``(confidence - CONTINUED_WEIGHT * continued - HIDDEN_WEIGHT * (1 - visible),
@@ -1133,11 +1156,13 @@ def plausibility(r: Registration) -> tuple[float, float]:
     run on past its silhouette (:attr:`SurfaceCheck.continued`, which lowers the
     confidence itself only beyond :data:`CONTINUED_FREE`), and the one with more of its
     surface in view (:attr:`SurfaceCheck.visible`) before one hidden behind something.
+    ``visible_min``: see :meth:`Registration.confidence_at`.
     """
+    c = r.confidence_at(visible_min)
     if r.surface is None:
-        return (r.confidence, r.quality)
+        return (c, r.quality)
     s = r.surface
-    rank = r.confidence - CONTINUED_WEIGHT * s.continued - HIDDEN_WEIGHT * (1.0 - s.visible)
+    rank = c - CONTINUED_WEIGHT * s.continued - HIDDEN_WEIGHT * (1.0 - s.visible)
     return (rank, r.quality)
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.contact import ContactFinder, ContactState
+from apo.contact.search import BlockSets, block_sets
 from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
 from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
 from apo.workers import run_parts, shared_zeros, workers_for
@@ -114,8 +115,10 @@ def label_frames(
     frames at load 4-5, 0.5-3 ms so). Two processes
     that read the counter at once both search the same block: the same rows, one is kept;
     none is skipped (every value the counter takes was read by the process that wrote the
-    next). Each process hands back its blocks' ``(frame, code)`` rows
-    (:meth:`ContactFinder.element_codes`); the rows in block order are labelled as
+    next). Each process keys its blocks' ``(frame, code)`` rows
+    (:meth:`ContactFinder.element_codes`) by their sets (:func:`apo.contact.search.block_sets`:
+    4 bytes a frame and the block's distinct sets, where the rows take 16 bytes an element)
+    and hands those back; the blocks' sets in block order are labelled as
     :meth:`ContactFinder.find_labels` labels them, so the labels are the same bit for bit.
     ``jobs``: None for auto (:func:`apo.workers.workers_for`).
     """
@@ -126,10 +129,11 @@ def label_frames(
         return finder.find_labels(X, progress=progress)
     counter = shared_zeros((1,), np.int64, True)
 
-    def block(b: int) -> tuple[IntArray, IntArray]:
-        return finder.element_codes(X[b * step : (b + 1) * step])
+    def block(b: int) -> BlockSets:
+        Xb = X[b * step : (b + 1) * step]
+        return block_sets(*finder.element_codes(Xb), len(Xb), finder.code_type)
 
-    def taken(report: Progress | None) -> dict[int, tuple[IntArray, IntArray]]:
+    def taken(report: Progress | None) -> dict[int, BlockSets]:
         out, top = {}, 0
         while (b := int(counter[0])) < n_blocks:
             counter[0] = b + 1
@@ -139,15 +143,13 @@ def label_frames(
                 report(min(len(X), top * step), len(X))
         return out
 
-    found: dict[int, tuple[IntArray, IntArray]] = {}
+    found: dict[int, BlockSets] = {}
     for part in run_parts([partial(taken, progress if i == 0 else None) for i in range(k)]):
         for b, got in part.items():
             found.setdefault(b, got)
     # a block taken by a child that died without a result: searched here
-    ordered = [found[b] if b in found else block(b) for b in range(n_blocks)]
-    frame = np.concatenate([f + b * step for b, (f, _c) in enumerate(ordered)])
-    code = np.concatenate([c for _f, c in ordered])
-    return finder.labels_of_codes(frame, code, len(X))
+    ordered = (found[b] if b in found else block(b) for b in range(n_blocks))
+    return finder.labels_of_sets(ordered, len(X))
 
 
 def observed_states(
