@@ -250,10 +250,21 @@ class ContactFinder:
         step = self.block_frames
         for a in range(0, len(X), step):
             Xb = X[a : a + step]
-            codes = _element_codes(g, e, self.threshold, self.angle_tol, Xb)
-            yield block_sets(*codes, len(Xb), self.code_type)
+            yield self._keyed(_element_codes(g, e, self.threshold, self.angle_tol, Xb), len(Xb))
             if progress is not None:
                 progress(min(a + step, len(X)), len(X))
+
+    def sets_of(self, X_EG_seq: npt.ArrayLike) -> BlockSets:
+        """:func:`block_sets` of a slice of poses, keyed as :meth:`find_labels` keys its blocks.
+
+        :meth:`element_codes` of the slice, its codes as :attr:`code_type` (one type for
+        every block, so that the keys of different blocks compare). For a slice starting at
+        a multiple of :attr:`block_frames`, what :func:`merge_sets` needs of it.
+        """
+        return self._keyed(self.element_codes(X_EG_seq), int(np.shape(X_EG_seq)[0]))
+
+    def _keyed(self, codes: tuple[IntArray, IntArray], n: int) -> BlockSets:
+        return block_sets(*codes, n, self.code_type)
 
     @property
     def code_type(self) -> type[np.signedinteger[Any]]:

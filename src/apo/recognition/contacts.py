@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apo.contact import ContactFinder, ContactState
-from apo.contact.search import BlockSets, block_sets
+from apo.contact.search import BlockSets
 from apo.geometry import Polyhedron, point_face_distance, segment_segment_closest
 from apo.recognition.types import BoolArray, FloatArray, IntArray, Progress, Scene, StateKey
 from apo.workers import run_parts, shared_zeros, workers_for
@@ -116,7 +116,7 @@ def label_frames(
     that read the counter at once both search the same block: the same rows, one is kept;
     none is skipped (every value the counter takes was read by the process that wrote the
     next). Each process keys its blocks' ``(frame, code)`` rows
-    (:meth:`ContactFinder.element_codes`) by their sets (:func:`apo.contact.search.block_sets`:
+    (:meth:`ContactFinder.element_codes`) by their sets (:meth:`ContactFinder.sets_of`:
     4 bytes a frame and the block's distinct sets, where the rows take 16 bytes an element)
     and hands those back; the blocks' sets in block order are labelled as
     :meth:`ContactFinder.find_labels` labels them, so the labels are the same bit for bit.
@@ -130,8 +130,7 @@ def label_frames(
     counter = shared_zeros((1,), np.int64, True)
 
     def block(b: int) -> BlockSets:
-        Xb = X[b * step : (b + 1) * step]
-        return block_sets(*finder.element_codes(Xb), len(Xb), finder.code_type)
+        return finder.sets_of(X[b * step : (b + 1) * step])
 
     def taken(report: Progress | None) -> dict[int, BlockSets]:
         out, top = {}, 0
